@@ -1,0 +1,70 @@
+"""Reading images from disk with OpenCV, with one-line errors naming the file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import DatasetError, ImageError
+
+__all__ = ["IMAGE_EXTENSIONS", "read_image", "image_size", "list_images"]
+
+#: file name endings recognised as images (lower case)
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
+
+
+def read_image(path: str | Path, grayscale: bool = False) -> NDArray[np.uint8]:
+    """Read an image file.
+
+    Parameters
+    ----------
+    path : image file.
+    grayscale : convert to one channel.
+
+    Returns
+    -------
+    (H, W) uint8 for grey images or ``grayscale=True``; (H, W, 3) uint8 BGR otherwise.
+
+    Raises
+    ------
+    ImageError
+        The file is missing or cannot be decoded (message names the file).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError(f"{path}: image file not found")
+    flags = cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_ANYCOLOR
+    img = cv2.imread(str(path), flags)
+    if img is None or img.size == 0:
+        raise ImageError(f"{path}: cannot decode image (corrupt or unsupported format)")
+    if img.dtype != np.uint8:
+        img = cv2.convertScaleAbs(img, alpha=255.0 / max(float(img.max()), 1.0))
+    return img
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """``(width, height)`` in pixels of an image file (decodes it)."""
+    img = read_image(path)
+    return int(img.shape[1]), int(img.shape[0])
+
+
+def list_images(folder: str | Path) -> list[Path]:
+    """Image files directly inside ``folder``, sorted by file name.
+
+    Raises
+    ------
+    DatasetError
+        The folder does not exist or holds no image.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DatasetError(f"{folder}: image folder not found")
+    files = sorted(
+        p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
+    )
+    if not files:
+        raise DatasetError(f"{folder}: no image files ({', '.join(IMAGE_EXTENSIONS)})")
+    return files
