@@ -17,8 +17,8 @@ Image conventions as in :mod:`eifslam.camera`: pixel centres at integer coordina
 
 from __future__ import annotations
 
+import functools
 import json
-import weakref
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -44,33 +44,35 @@ _NEAR = 0.01  # metres
 class _Texture:
     """Mip-map pyramid of a face's BGRA texture and its texel sizes (metres)."""
 
-    levels: list[NDArray[np.uint8]]
+    levels: tuple[NDArray[np.uint8], ...]
     du: float
     dv: float
 
 
-_CACHE: "weakref.WeakKeyDictionary[BuiltinScene, list[_Texture]]" = weakref.WeakKeyDictionary()
-
-
-def _build_texture(face: Surface) -> _Texture:
-    """Generate the texture of one face and its pyramid."""
-    nu = max(2, int(round(face.size_u / face.texel)))
-    nv = max(2, int(round(face.size_v / face.texel)))
-    bgr = make_texture(nu, nv, face.seed, face.shade)
-    alpha = ellipse_alpha(nu, nv) if face.shape == "ellipse" else np.full((nv, nu), 255, np.uint8)
+@functools.lru_cache(maxsize=128)
+def _cached_levels(nu: int, nv: int, seed: int, shade: float, shape: str) -> tuple[NDArray[np.uint8], ...]:
+    """Mip-map pyramid of a BGRA texture; cached, so re-made scenes reuse their textures."""
+    bgr = make_texture(nu, nv, seed, shade)
+    alpha = ellipse_alpha(nu, nv) if shape == "ellipse" else np.full((nv, nu), 255, np.uint8)
     levels = [np.dstack([bgr, alpha])]
     while min(levels[-1].shape[:2]) >= 16:
         levels.append(cv2.pyrDown(levels[-1]))
+    for lev in levels:
+        lev.flags.writeable = False
+    return tuple(levels)
+
+
+def _build_texture(face: Surface) -> _Texture:
+    """The texture of one face (texel counts rounded from ``size / texel``)."""
+    nu = max(2, int(round(face.size_u / face.texel)))
+    nv = max(2, int(round(face.size_v / face.texel)))
+    levels = _cached_levels(nu, nv, face.seed, float(face.shade), face.shape)
     return _Texture(levels, face.size_u / nu, face.size_v / nv)
 
 
 def _textures(scene: BuiltinScene) -> list[_Texture]:
-    """The scene's textures, generated once per scene object."""
-    tex = _CACHE.get(scene)
-    if tex is None:
-        tex = [_build_texture(f) for f in scene.surfaces]
-        _CACHE[scene] = tex
-    return tex
+    """The scene's textures, in the order of ``scene.surfaces``."""
+    return [_build_texture(f) for f in scene.surfaces]
 
 
 def _clip_near(poly_c: NDArray[np.float64], near: float) -> NDArray[np.float64]:
