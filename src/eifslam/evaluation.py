@@ -126,6 +126,8 @@ class EvaluationResult:
         Ground-truth timestamps of the associated poses (seconds).
     gt_positions, aligned_positions : (M, 3) float64
         True and aligned estimated camera centres.
+    gt_rotations : (M, 3, 3) float64
+        True camera-to-world rotations ``R_wc`` of the associated poses.
     ate_errors : (M,) float64
         Per-pose position errors after alignment.
     rpe_rot_deg : (M - 1,) float64
@@ -148,6 +150,7 @@ class EvaluationResult:
     timestamps: Array = field(repr=False)
     gt_positions: Array = field(repr=False)
     aligned_positions: Array = field(repr=False)
+    gt_rotations: Array = field(repr=False)
     ate_errors: Array = field(repr=False)
     rpe_rot_deg: Array = field(repr=False)
     rpe_dir_deg: Array = field(repr=False)
@@ -329,6 +332,7 @@ def evaluate(estimate: Trajectory, ground_truth: Trajectory, max_diff: float = 0
         timestamps=np.asarray(gt_s.timestamps, dtype=np.float64),
         gt_positions=np.asarray(p_gt, dtype=np.float64),
         aligned_positions=aligned,
+        gt_rotations=R_gt,
         ate_errors=err,
         rpe_rot_deg=rot,
         rpe_dir_deg=dirs,

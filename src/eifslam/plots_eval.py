@@ -14,15 +14,33 @@ __all__ = ["top_view_axes", "plot_trajectories", "plot_evaluation"]
 _AXIS_NAMES = "xyz"
 
 
-def top_view_axes(positions: NDArray[np.float64]) -> tuple[int, int]:
-    """The two world axes with the largest extent of ``positions`` (N, 3), in index order.
+def top_view_axes(
+    positions: NDArray[np.float64], R_wc: NDArray[np.float64] | None = None
+) -> tuple[int, int]:
+    """The two world axes of a top view, in index order.
 
-    For camera-to-world ground truth with ``y`` down (KITTI, the shared data sets) this
-    is ``(0, 2)``, the x-z ground plane.
+    Parameters
+    ----------
+    positions : (N, 3) camera centres.
+    R_wc : (N, 3, 3) camera-to-world rotations, optional. When given and the cameras
+        agree on a down direction (mean camera ``y`` axis of length > 0.7), the world axis
+        most aligned with it is left out (KITTI, a hand-held camera: ``(0, 2)``).
+        Otherwise the world axis closest to the normal of the best-fit plane of
+        ``positions`` is left out (a camera circling an object: the ring's axis).
     """
     P = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-    extent = P.max(0) - P.min(0) if len(P) else np.ones(3)
-    drop = int(np.argmin(extent))
+    if R_wc is not None and len(R_wc):
+        down = np.asarray(R_wc, dtype=np.float64).reshape(-1, 3, 3)[:, :, 1].mean(0)
+        if np.linalg.norm(down) > 0.7:
+            drop = int(np.argmax(np.abs(down)))
+            keep = [k for k in range(3) if k != drop]
+            return keep[0], keep[1]
+    if len(P) >= 3:
+        C = P - P.mean(0)
+        normal = np.linalg.eigh(C.T @ C)[1][:, 0]
+        drop = int(np.argmax(np.abs(normal)))
+    else:
+        drop = 1
     keep = [k for k in range(3) if k != drop]
     return keep[0], keep[1]
 
@@ -63,7 +81,13 @@ def plot_trajectories(
 
 
 def plot_evaluation(ax: Any, result: EvaluationResult, axes: tuple[int, int] | None = None) -> None:
-    """Top view of an :class:`EvaluationResult` with its ATE in the title."""
+    """Top view of an :class:`EvaluationResult` with its ATE in the title.
+
+    The view direction is the mean camera ``y`` (down) axis of the ground truth unless
+    ``axes`` is given (see :func:`top_view_axes`).
+    """
+    if axes is None:
+        axes = top_view_axes(result.gt_positions, result.gt_rotations)
     plot_trajectories(ax, result.gt_positions, result.aligned_positions, axes)
     ax.set_title(
         f"ATE {result.ate_rmse:.4g} ({result.ate_percent:.2f} % of path), "
