@@ -1,0 +1,158 @@
+"""Front-end configuration: one typed, frozen dataclass, validated on construction.
+
+Pure Python (no OpenCV): the availability of a detector in the installed OpenCV is
+checked when the detector is created (:mod:`eifslam.frontend.features`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any, Mapping
+
+from ..errors import ConfigError
+
+__all__ = ["FrontEndConfig", "DETECTORS", "COVARIANCE_METHODS"]
+
+DETECTORS = ("sift", "orb", "akaze", "surf")
+COVARIANCE_METHODS = ("fast", "ut")
+COLOR_ORDERS = ("bgr", "rgb")
+
+
+@dataclass(frozen=True)
+class FrontEndConfig:
+    """Parameters of the front end (features, split, matching, relative pose, uncertainty).
+
+    Every value is checked in ``__post_init__``; a bad value raises
+    :class:`~eifslam.errors.ConfigError` naming the key. Build from a mapping with
+    :meth:`from_dict`, which also rejects unknown keys.
+
+    Attributes
+    ----------
+    detector : {"sift", "orb", "akaze", "surf"}
+        Feature detector/descriptor. SURF and AKAZE need an OpenCV build that ships them.
+    max_features : int
+        Cap on keypoints per image (the strongest are kept).
+    sift_octave_layers : int
+        SIFT scales per octave (OpenCV default 3; 2 is ~25% faster).
+    color_order : {"bgr", "rgb"}
+        Channel order of 3-channel input images (OpenCV's ``imread`` gives BGR).
+    map_fraction : float in [0, 1]
+        Fraction of new tracks assigned to the map set ``Ωm``; the rest go to ``Ωp``.
+    ratio : float in (0, 1]
+        Lowe's ratio test threshold (best / second-best descriptor distance).
+    mutual : bool
+        Keep only mutual nearest neighbours.
+    match_window : int >= 1
+        A new frame is matched against this many previous frames (1 = previous only);
+        older frames only see keypoints still unmatched, to recover tracks lost for a frame.
+    ransac_threshold_px : float > 0
+        Epipolar (Sampson) inlier threshold of the essential-matrix RANSAC, pixels.
+    ransac_confidence : float in (0, 1)
+        RANSAC confidence.
+    min_matches : int >= 5
+        Fewer epipolar inliers than this between two frames: the pair is not used to
+        extend tracks (``FrameResult.ok`` is False).
+    min_inliers : int >= 5
+        Minimum ``Ωp`` inliers for a relative-pose measurement.
+    min_common : int >= 5
+        Minimum ``Ωp`` tracks common to the two frames before trying a relative pose.
+    min_parallax_deg : float >= 0
+        Minimum median parallax (angle between rotation-compensated bearings), degrees.
+    refine : bool
+        Refine the RANSAC ``R, t`` by Gauss-Newton on the inliers' Sampson error.
+    refine_iterations : int >= 1
+        Gauss-Newton iterations of that refinement.
+    sigma_px : float > 0
+        Standard deviation of image-point noise per coordinate, pixels.
+    covariance : {"fast", "ut"}
+        ``"fast"``: first-order ``sigma_px**2 (J^T J)^-1`` of the Sampson residuals;
+        ``"ut"``: unscented transform of the point noise through the refinement.
+    ut_max_points : int >= 5
+        The UT uses at most this many inliers (evenly subsampled) to bound its cost; the
+        covariance is then scaled by ``n_used / n_inliers``.
+    """
+
+    # features
+    detector: str = "sift"
+    max_features: int = 1500
+    sift_octave_layers: int = 3
+    color_order: str = "bgr"
+    # split of tracks between relative poses (Ωp) and the map (Ωm)
+    map_fraction: float = 0.3
+    # association
+    ratio: float = 0.8
+    mutual: bool = True
+    match_window: int = 1
+    ransac_threshold_px: float = 1.0
+    ransac_confidence: float = 0.999
+    min_matches: int = 15
+    # relative pose
+    min_inliers: int = 15
+    min_common: int = 20
+    min_parallax_deg: float = 0.3
+    refine: bool = True
+    refine_iterations: int = 3
+    # uncertainty
+    sigma_px: float = 1.0
+    covariance: str = "fast"
+    ut_max_points: int = 300
+
+    def __post_init__(self) -> None:
+        def bad(key: str, msg: str) -> ConfigError:
+            return ConfigError(f"front-end config '{key}': {msg}, got {getattr(self, key)!r}")
+
+        if self.detector not in DETECTORS:
+            raise bad("detector", f"must be one of {DETECTORS}")
+        if self.covariance not in COVARIANCE_METHODS:
+            raise bad("covariance", f"must be one of {COVARIANCE_METHODS}")
+        if self.color_order not in COLOR_ORDERS:
+            raise bad("color_order", f"must be one of {COLOR_ORDERS}")
+        ints = {
+            "max_features": 10,
+            "sift_octave_layers": 1,
+            "match_window": 1,
+            "min_matches": 5,
+            "min_inliers": 5,
+            "min_common": 5,
+            "refine_iterations": 1,
+            "ut_max_points": 5,
+        }
+        for key, lo in ints.items():
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise bad(key, f"must be an integer >= {lo}")
+        for key in ("mutual", "refine"):
+            if not isinstance(getattr(self, key), bool):
+                raise bad(key, "must be a bool")
+        checks = {
+            "map_fraction": lambda v: 0.0 <= v <= 1.0,
+            "ratio": lambda v: 0.0 < v <= 1.0,
+            "ransac_threshold_px": lambda v: 0.0 < v < 1e3,
+            "ransac_confidence": lambda v: 0.0 < v < 1.0,
+            "min_parallax_deg": lambda v: 0.0 <= v < 90.0,
+            "sigma_px": lambda v: 0.0 < v < 1e3,
+        }
+        for key, ok in checks.items():
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not ok(float(v)):
+                raise bad(key, "is out of range")
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> "FrontEndConfig":
+        """Build a config from a mapping, rejecting unknown keys.
+
+        Parameters
+        ----------
+        values : mapping
+            Keys are attribute names of :class:`FrontEndConfig`.
+
+        Raises
+        ------
+        ConfigError
+            On an unknown key or an invalid value.
+        """
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ConfigError(f"unknown front-end config key(s): {', '.join(unknown)}")
+        return cls(**dict(values))

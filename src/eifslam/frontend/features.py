@@ -1,0 +1,204 @@
+"""Keypoint detection and description with OpenCV, undistortion, colours, Laplacian sign.
+
+The image is checked (:func:`check_image`), converted to grayscale, and the configured
+detector (SIFT by default; ORB, AKAZE, SURF where the installed OpenCV ships them) finds at
+most ``max_features`` keypoints. Keypoints leave this module undistorted (``uv``) and raw
+(``uv_raw``, for colours).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ..camera import PinholeCamera
+from ..errors import ConfigError, ImageError
+from .config import FrontEndConfig
+from .split import integral_image, laplacian_sign
+
+Array = NDArray[np.float64]
+
+__all__ = ["Features", "check_image", "make_detector", "detect_features", "undistort_pixels"]
+
+
+@dataclass(frozen=True)
+class Features:
+    """Keypoints of one image.
+
+    Attributes
+    ----------
+    uv : (N, 2) float64
+        Undistorted pixel coordinates.
+    uv_raw : (N, 2) float64
+        Pixel coordinates as detected (with the lens distortion).
+    descriptors : (N, D) uint8 or float32
+        Descriptors (binary for ORB/AKAZE, float for SIFT/SURF).
+    scale_px : (N,) float64
+        Keypoint scale (approximate Gaussian sigma), pixels.
+    response : (N,) float64
+        Detector response (larger is stronger).
+    sign : (N,) int8
+        Sign of the Laplacian at the keypoint scale (see :mod:`eifslam.frontend.split`).
+    colors : (N, 3) uint8
+        RGB colour at the raw keypoint.
+    """
+
+    uv: Array
+    uv_raw: Array
+    descriptors: NDArray
+    scale_px: Array
+    response: Array
+    sign: NDArray[np.int8]
+    colors: NDArray[np.uint8]
+
+    def __len__(self) -> int:
+        return int(len(self.uv))
+
+
+def check_image(image: object, camera: PinholeCamera) -> np.ndarray:
+    """Validate an image and return it as a C-contiguous ``uint8`` array.
+
+    Accepts ``(H, W)``, ``(H, W, 1)``, ``(H, W, 3)`` or ``(H, W, 4)`` arrays of ``uint8``,
+    ``uint16`` (scaled by 1/257) or float in ``[0, 1]``, with ``H, W`` the camera's size.
+
+    Raises
+    ------
+    ImageError
+        On ``None``, a non-array, a wrong dtype, shape or size, or non-finite values.
+    """
+    if image is None:
+        raise ImageError("image is None (unreadable file?)")
+    if not isinstance(image, np.ndarray):
+        raise ImageError(f"image must be a numpy array, got {type(image).__name__}")
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (1, 3, 4)):
+        raise ImageError(f"image must be HxW or HxWx{{1,3,4}}, got shape {image.shape}")
+    if image.shape[:2] != (camera.height, camera.width):
+        raise ImageError(
+            f"image is {image.shape[1]}x{image.shape[0]} but the camera is "
+            f"{camera.width}x{camera.height}"
+        )
+    if image.dtype == np.uint8:
+        out = image
+    elif image.dtype == np.uint16:
+        out = (image // 257).astype(np.uint8)
+    elif np.issubdtype(image.dtype, np.floating):
+        if not np.all(np.isfinite(image)):
+            raise ImageError("image has non-finite values")
+        out = (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    else:
+        raise ImageError(f"image dtype must be uint8, uint16 or float, got {image.dtype}")
+    return np.ascontiguousarray(out)
+
+
+def make_detector(config: FrontEndConfig) -> "cv2.Feature2D":
+    """The OpenCV detector/descriptor named by ``config.detector``.
+
+    Raises
+    ------
+    ConfigError
+        When the installed OpenCV does not provide it (SURF needs a contrib build with
+        non-free modules; AKAZE is absent from OpenCV 5's main modules).
+    """
+    n = config.max_features
+    name = config.detector
+    if name == "sift":
+        return cv2.SIFT_create(nfeatures=n, nOctaveLayers=config.sift_octave_layers)
+    if name == "orb":
+        return cv2.ORB_create(nfeatures=n, fastThreshold=10)
+    if name == "akaze":
+        factory = getattr(cv2, "AKAZE_create", None)
+        if factory is None:
+            raise ConfigError(
+                f"detector 'akaze' is not available in the installed OpenCV {cv2.__version__} "
+                "(install an OpenCV build that has cv2.AKAZE_create)"
+            )
+        return factory(threshold=1e-4)
+    xf = getattr(cv2, "xfeatures2d", None)
+    factory = getattr(xf, "SURF_create", None) if xf is not None else None
+    if factory is None:
+        raise ConfigError(
+            f"detector 'surf' is not available in the installed OpenCV {cv2.__version__} "
+            "(needs opencv-contrib with non-free modules, cv2.xfeatures2d.SURF_create)"
+        )
+    try:
+        return factory(hessianThreshold=300)
+    except cv2.error as exc:  # built without OPENCV_ENABLE_NONFREE
+        raise ConfigError(f"detector 'surf' is not usable in this OpenCV build: {exc}") from None
+
+
+def undistort_pixels(uv_raw: Array, camera: PinholeCamera) -> Array:
+    """Remove lens distortion from pixels ``(N, 2)``; returns undistorted pixels ``(N, 2)``."""
+    uv_raw = np.asarray(uv_raw, np.float64).reshape(-1, 2)
+    if not camera.has_distortion or len(uv_raw) == 0:
+        return uv_raw.copy()
+    K = camera.K
+    dist = np.asarray(camera.distortion, np.float64)
+    out = cv2.undistortPoints(uv_raw.reshape(-1, 1, 2), K, dist, P=K)
+    return out.reshape(-1, 2).astype(np.float64)
+
+
+def _gray_and_rgb(image: np.ndarray, color_order: str) -> tuple[np.ndarray, np.ndarray]:
+    if image.ndim == 2 or image.shape[2] == 1:
+        gray = image.reshape(image.shape[:2])
+        return gray, gray[..., None]
+    rgb = image[..., :3]
+    if color_order == "bgr":
+        rgb = rgb[..., ::-1]
+    return cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY), rgb
+
+
+def detect_features(
+    image: np.ndarray, camera: PinholeCamera, config: FrontEndConfig, detector: "cv2.Feature2D"
+) -> Features:
+    """Detect and describe keypoints of one image.
+
+    Parameters
+    ----------
+    image : ndarray
+        ``(H, W)`` grayscale or ``(H, W, 3|4)`` colour image (channel order per
+        ``config.color_order``); see :func:`check_image`.
+    camera : PinholeCamera
+    config : FrontEndConfig
+    detector : cv2.Feature2D
+        From :func:`make_detector`.
+
+    Returns
+    -------
+    Features
+        At most ``config.max_features`` keypoints (possibly zero, e.g. for a black image).
+    """
+    img = check_image(image, camera)
+    gray, rgb = _gray_and_rgb(img, config.color_order)
+    kps, desc = detector.detectAndCompute(gray, None)
+    if desc is None or len(kps) == 0:
+        d = 32 if config.detector in ("orb",) else 128
+        dtype = np.uint8 if config.detector in ("orb", "akaze") else np.float32
+        return Features(
+            np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, d), dtype), np.zeros(0),
+            np.zeros(0), np.zeros(0, np.int8), np.zeros((0, 3), np.uint8),
+        )
+    uv_raw = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
+    size = np.array([k.size for k in kps], np.float64)
+    response = np.array([k.response for k in kps], np.float64)
+    if len(kps) > config.max_features:  # AKAZE/SURF have no cap of their own
+        keep = np.argsort(-response, kind="stable")[: config.max_features]
+        uv_raw, size, response, desc = uv_raw[keep], size[keep], response[keep], desc[keep]
+    scale = 0.5 * size  # OpenCV's size is a diameter of about 2 sigma (SIFT)
+    sign = laplacian_sign(integral_image(gray), uv_raw, scale)
+    x = np.clip(np.rint(uv_raw[:, 0]).astype(int), 0, camera.width - 1)
+    y = np.clip(np.rint(uv_raw[:, 1]).astype(int), 0, camera.height - 1)
+    colors = rgb[y, x]
+    if colors.shape[1] == 1:
+        colors = np.repeat(colors, 3, axis=1)
+    return Features(
+        uv=undistort_pixels(uv_raw, camera),
+        uv_raw=uv_raw,
+        descriptors=desc,
+        scale_px=scale,
+        response=response,
+        sign=sign,
+        colors=np.ascontiguousarray(colors, dtype=np.uint8),
+    )

@@ -1,0 +1,289 @@
+"""The front end: everything between an image and the measurements the filter fuses.
+
+One entry point per image (:meth:`FrontEnd.add_frame`), then queries by frame id:
+keypoints with track ids, tracks common to two frames, the ``Ωm`` observations of a frame
+(``Zm``) and the relative pose of two frames from their ``Ωp`` tracks (``ZR``, ``ZT``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ..camera import PinholeCamera
+from ..errors import EstimatorError
+from .config import FrontEndConfig
+from .features import Features, detect_features, make_detector
+from .matching import DescriptorMatcher, essential_ransac
+from .relative_pose import estimate_relative_pose
+from .results import FrameFeatures, FrameResult, Reason, RelativePoseResult
+from .split import assign_to_map
+from .tracks import TrackStore
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+__all__ = ["FrontEnd"]
+
+
+@dataclass
+class _Frame:
+    feats: Features
+    raw_ids: IntArray  # as assigned; resolve through the TrackStore before use
+
+
+class FrontEnd:
+    """Feature detection, track management and relative poses for one calibrated camera.
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+        Intrinsics; images must have its size.
+    config : FrontEndConfig, optional
+
+    Raises
+    ------
+    ConfigError
+        When the configured detector is not available in the installed OpenCV.
+
+    Notes
+    -----
+    Track ids are stable: a keypoint matched to a keypoint of an earlier frame takes its
+    track id; unmatched keypoints start new tracks, each assigned for ever to ``Ωm`` or
+    ``Ωp`` (:mod:`eifslam.frontend.split`). A track never holds two keypoints of one
+    frame, and matches rejected by the epipolar RANSAC never extend a track.
+    """
+
+    def __init__(self, camera: PinholeCamera, config: FrontEndConfig = FrontEndConfig()) -> None:
+        self.camera = camera
+        self.config = config
+        self._detector = make_detector(config)
+        self._matcher = DescriptorMatcher(config.ratio, config.mutual)
+        self._tracks = TrackStore()
+        self._frames: dict[int, _Frame] = {}
+        self._desc: dict[int, NDArray] = {}
+        self._order: list[int] = []
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def frame_ids(self) -> list[int]:
+        """Ids of the stored frames, in the order they were added."""
+        return list(self._order)
+
+    def _get(self, frame_id: int) -> _Frame:
+        fr = self._frames.get(int(frame_id))
+        if fr is None:
+            raise EstimatorError(f"frame {frame_id} is not stored in the front end")
+        return fr
+
+    def frame(self, frame_id: int) -> FrameFeatures:
+        """Keypoints of a stored frame with their current track ids and sets."""
+        fr = self._get(frame_id)
+        ids = self._tracks.resolve(fr.raw_ids)
+        f = fr.feats
+        return FrameFeatures(int(frame_id), f.uv, f.uv_raw, ids, self._tracks.in_map(ids), f.colors)
+
+    def common_tracks(
+        self, i: int, j: int, in_map: bool | None = None
+    ) -> tuple[IntArray, Array, Array]:
+        """Tracks seen in both frames.
+
+        Parameters
+        ----------
+        i, j : int
+            Frame ids.
+        in_map : bool or None
+            None: all tracks; True: only ``Ωm`` tracks; False: only ``Ωp`` tracks.
+
+        Returns
+        -------
+        track_ids : (M,) int64, sorted.
+        uv_i, uv_j : (M, 2) undistorted pixels in frames *i* and *j*.
+        """
+        fi, fj = self._get(i), self._get(j)
+        ids_i = self._tracks.resolve(fi.raw_ids)
+        ids_j = self._tracks.resolve(fj.raw_ids)
+        ids, a, b = np.intersect1d(ids_i, ids_j, assume_unique=True, return_indices=True)
+        if in_map is not None:
+            keep = self._tracks.in_map(ids) == bool(in_map)
+            ids, a, b = ids[keep], a[keep], b[keep]
+        return ids.astype(np.int64), fi.feats.uv[a], fj.feats.uv[b]
+
+    def map_observations(self, frame_id: int, min_track_length: int = 1) -> tuple[IntArray, Array]:
+        """The ``Ωm`` (map) tracks seen in a frame: their ids are the map feature ids.
+
+        Parameters
+        ----------
+        frame_id : int
+        min_track_length : int
+            Only tracks seen in at least this many frames so far.
+
+        Returns
+        -------
+        track_ids : (M,) int64; uv : (M, 2) undistorted pixels (``Zm``).
+        """
+        fr = self._get(frame_id)
+        ids = self._tracks.resolve(fr.raw_ids)
+        keep = self._tracks.in_map(ids) & (self._tracks.length(ids) >= min_track_length)
+        return ids[keep], fr.feats.uv[keep]
+
+    def relative_pose(self, i: int, j: int) -> RelativePoseResult:
+        """Relative pose of frame *j* seen from frame *i*, from their common ``Ωp`` tracks.
+
+        Returns
+        -------
+        RelativePoseResult
+            ``measurement`` is a :class:`~eifslam.measurements.RelativePose` with ``i, j``
+            set when ``ok``; otherwise ``reason`` says why.
+        """
+        if int(i) == int(j):
+            self._get(i)
+            return RelativePoseResult(False, Reason.SAME_FRAME, None,
+                                      timings_ms={"relative_pose": 0.0, "covariance": 0.0})
+        ids, ui, uj = self.common_tracks(i, j, in_map=False)
+        return estimate_relative_pose(ui, uj, self.camera, self.config, int(i), int(j), ids)
+
+    # ----------------------------------------------------------------- updates
+    def add_frame(self, image: np.ndarray, frame_id: int) -> FrameResult:
+        """Detect features, match them against the previous frame(s), extend/create tracks.
+
+        Parameters
+        ----------
+        image : ndarray
+            ``(H, W)`` or ``(H, W, 3|4)`` image of the camera's size (``uint8``, ``uint16``
+            or float in [0, 1]).
+        frame_id : int
+            New, unique frame id.
+
+        Returns
+        -------
+        FrameResult
+
+        Raises
+        ------
+        ImageError
+            On unreadable input (None, wrong dtype, shape or size).
+        EstimatorError
+            When ``frame_id`` is already stored.
+        """
+        fid = int(frame_id)
+        if fid in self._frames:
+            raise EstimatorError(f"frame {fid} was already added to the front end")
+        t0 = time.perf_counter()
+        feats = detect_features(image, self.camera, self.config, self._detector)
+        t1 = time.perf_counter()
+        ids = np.full(len(feats), -1, np.int64)
+        previous = [p for p in reversed(self._order) if p in self._desc][: self.config.match_window]
+        n_matches = 0
+        for p in previous:
+            n_matches += self._extend_tracks(feats, ids, p)
+        new = ids < 0
+        in_map = assign_to_map(feats.sign[new], feats.response[new], self.config.map_fraction)
+        ids[new] = self._tracks.allocate(in_map)
+        self._tracks.observe(ids)
+        self._frames[fid] = _Frame(feats, ids)
+        self._desc[fid] = feats.descriptors
+        self._order.append(fid)
+        t2 = time.perf_counter()
+        if len(feats) == 0:
+            ok, reason = False, Reason.NO_FEATURES
+        elif previous and n_matches < self.config.min_matches:
+            ok, reason = False, Reason.TOO_FEW_MATCHES
+        else:
+            ok, reason = True, Reason.OK
+        return FrameResult(fid, ok, reason, len(feats), int(n_matches), int(new.sum()),
+                           {"detect": (t1 - t0) * 1e3, "match": (t2 - t1) * 1e3})
+
+    def _epipolar_matches(
+        self, uv_a: Array, d_a: NDArray, uv_b: Array, d_b: NDArray
+    ) -> tuple[IntArray, IntArray]:
+        """Descriptor matches between two keypoint sets that pass the epipolar RANSAC."""
+        ia, ib = self._matcher.match(d_a, d_b)
+        if len(ia) < self.config.min_matches:
+            return ia[:0], ib[:0]
+        _, inl = essential_ransac(uv_b[ib], uv_a[ia], self.camera.K,
+                                  self.config.ransac_threshold_px, self.config.ransac_confidence)
+        if inl.sum() < self.config.min_matches:
+            return ia[:0], ib[:0]
+        return ia[inl], ib[inl]
+
+    def _extend_tracks(self, feats: Features, ids: IntArray, p: int) -> int:
+        """Give unassigned keypoints of the new frame the track ids of frame ``p``'s matches."""
+        prev = self._frames[p]
+        pid = self._tracks.resolve(prev.raw_ids)
+        free_new = np.flatnonzero(ids < 0)
+        free_old = np.flatnonzero(~np.isin(pid, ids[ids >= 0]))
+        if len(free_new) < 5 or len(free_old) < 5:
+            return 0
+        ia, ib = self._epipolar_matches(
+            feats.uv[free_new], feats.descriptors[free_new],
+            prev.feats.uv[free_old], self._desc[p][free_old],
+        )
+        ids[free_new[ia]] = pid[free_old[ib]]
+        return int(len(ia))
+
+    def relocalise(self, frame_id: int, candidate_frame_ids) -> list[tuple[int, int]]:
+        """Match a frame against older stored frames and merge the matched tracks.
+
+        Map features (and ``Ωp`` tracks) seen in a candidate regain their identity in
+        ``frame_id``: each matched pair of tracks is merged into the older id, unless the
+        two tracks are of different sets or share a frame.
+
+        Parameters
+        ----------
+        frame_id : int
+            A stored frame (with descriptors).
+        candidate_frame_ids : iterable of int
+            Stored frames to try (those without descriptors are skipped).
+
+        Returns
+        -------
+        list of (candidate_id, n_matches)
+            Epipolar-consistent matches found with each candidate (0 when none).
+        """
+        fr = self._get(frame_id)
+        out: list[tuple[int, int]] = []
+        pairs = []
+        for c in candidate_frame_ids:
+            c = int(c)
+            if c == int(frame_id) or c not in self._desc or int(frame_id) not in self._desc:
+                out.append((c, 0))
+                continue
+            cf = self._get(c)
+            ia, ib = self._epipolar_matches(fr.feats.uv, self._desc[int(frame_id)],
+                                            cf.feats.uv, self._desc[c])
+            out.append((c, int(len(ia))))
+            if len(ia):
+                pairs.append(np.stack([fr.raw_ids[ia], cf.raw_ids[ib]], 1))
+        if pairs:
+            self._merge_pairs(np.concatenate(pairs))
+        return out
+
+    def _merge_pairs(self, pairs: IntArray) -> None:
+        roots = np.unique(self._tracks.resolve(pairs.reshape(-1)))
+        frames: dict[int, set[int]] = {int(r): set() for r in roots}
+        for fid, fr in self._frames.items():
+            ids = self._tracks.resolve(fr.raw_ids)
+            for h in ids[np.isin(ids, roots)]:
+                frames[int(h)].add(fid)
+        for a, b in pairs:
+            ra, rb = (int(v) for v in self._tracks.resolve(np.array([a, b])))
+            if ra == rb or frames[ra] & frames[rb]:
+                continue
+            if self._tracks.merge(ra, rb):
+                frames[min(ra, rb)] = frames[ra] | frames[rb]
+
+    def forget(self, frame_id: int) -> None:
+        """Drop the descriptors of a frame (it can no longer be matched; its keypoints and
+        track ids stay available)."""
+        self._get(frame_id)
+        self._desc.pop(int(frame_id), None)
+
+
+def set_opencv_threads(n: int) -> None:
+    """Set OpenCV's worker threads (``cv2.setNumThreads``); a process-wide setting."""
+    cv2.setNumThreads(int(n))
