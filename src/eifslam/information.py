@@ -1,0 +1,99 @@
+"""Storage of the sparse information matrix and vector (pure NumPy / SciPy).
+
+Fusing a batch (paper eq. 8) appends the blocks ``J^T Q^-1 J`` as triplets in constant
+time per measurement; the matrix is summed into CSC form only when somebody needs it
+(recovery, plots). Pending triplets are folded into a cached CSC matrix so that the
+summation cost stays proportional to the non-zeros.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+class InformationStore:
+    """Information matrix ``I`` (sparse, symmetric) and vector ``i`` of a growing state."""
+
+    def __init__(self) -> None:
+        self.dim = 0
+        self._vec = np.zeros(64)
+        self._rows: list[IntArray] = []
+        self._cols: list[IntArray] = []
+        self._vals: list[Array] = []
+        self._pending = 0
+        self._cached: sp.csc_matrix = sp.csc_matrix((0, 0))
+
+    def grow(self, dim: int) -> None:
+        """Augment the state with zeros up to ``dim`` entries (Algorithm 1, step 4)."""
+        if dim < self.dim:
+            raise ValueError("the state cannot shrink")
+        if dim > len(self._vec):
+            new = np.zeros(max(dim, 2 * len(self._vec)))
+            new[: self.dim] = self._vec[: self.dim]
+            self._vec = new
+        self.dim = dim
+
+    @property
+    def vector(self) -> Array:
+        """The information vector ``i``, shape ``(dim,)`` (a view)."""
+        return self._vec[: self.dim]
+
+    def add(self, idx: IntArray, Lam: Array, eta: Array) -> None:
+        """Add ``N`` dense blocks.
+
+        Parameters
+        ----------
+        idx : (N, k) int
+            State indices of each block's rows/columns.
+        Lam : (N, k, k) float
+            Information blocks ``J^T Q^-1 J``.
+        eta : (N, k) float
+            Information-vector contributions ``J^T Q^-1 (z - h + J x)``.
+        """
+        if len(idx) == 0:
+            return
+        if not (np.all(np.isfinite(Lam)) and np.all(np.isfinite(eta))):
+            raise FloatingPointError("refusing to fuse non-finite information")
+        k = idx.shape[1]
+        self._rows.append(np.repeat(idx, k, axis=1).ravel())
+        self._cols.append(np.tile(idx, (1, k)).ravel())
+        self._vals.append(Lam.ravel())
+        self._pending += Lam.size
+        np.add.at(self._vec, idx.ravel(), eta.ravel())
+
+    def pending_triplets(self) -> tuple[IntArray, IntArray, Array]:
+        """Triplets added since the last :meth:`matrix` call (not yet summed)."""
+        if not self._rows:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+        return np.concatenate(self._rows), np.concatenate(self._cols), np.concatenate(self._vals)
+
+    def matrix(self) -> sp.csc_matrix:
+        """The information matrix ``I`` as CSC, shape ``(dim, dim)``."""
+        n = self.dim
+        base = self._cached
+        if base.shape != (n, n):
+            base = base.copy()
+            base.resize((n, n))
+        if self._pending:
+            r, c, v = self.pending_triplets()
+            base = (base + sp.csc_matrix((v, (r, c)), shape=(n, n))).tocsc()
+            self._rows, self._cols, self._vals, self._pending = [], [], [], 0
+        self._cached = base
+        return base
+
+    def reset(self) -> None:
+        """Zero information, same dimension (smoothing starts from here)."""
+        self._vec[:] = 0.0
+        self._rows, self._cols, self._vals, self._pending = [], [], [], 0
+        self._cached = sp.csc_matrix((self.dim, self.dim))
+
+    def set(self, I: sp.spmatrix, i: Array) -> None:
+        """Replace ``I`` and ``i`` (scale recovery)."""
+        self._rows, self._cols, self._vals, self._pending = [], [], [], 0
+        self._cached = sp.csc_matrix(I)
+        self._vec[: self.dim] = i
