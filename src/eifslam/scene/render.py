@@ -9,8 +9,8 @@ sees it. Occlusion is resolved per pixel with an inverse-depth buffer: on a plan
 ``n_c . X_c = d_c`` the inverse depth of pixel ``(u, v)`` is ``n_c . K^-1 [u, v, 1] / d_c``,
 linear in the pixel. Pixels whose ray meets the plane behind the camera get a negative
 inverse depth and are discarded, so faces crossing the camera plane need no clipping
-beyond a bounding box. Textures are mip-mapped (``cv2.pyrDown``) and the level is picked
-per face from the texture-to-image scale, which keeps far faces from aliasing.
+beyond a bounding box. Textures are mip-mapped (area-averaged halving) and the level is picked
+per face from the texture-to-image scale at the centre of its visible part, which keeps far faces from aliasing.
 
 Image conventions as in :mod:`eifslam.camera`: pixel centres at integer coordinates.
 """
@@ -42,21 +42,31 @@ _NEAR = 0.01  # metres
 
 @dataclass(frozen=True)
 class _Texture:
-    """Mip-map pyramid of a face's BGRA texture and its texel sizes (metres)."""
+    """Mip-map pyramid of a face's BGRA texture and the texel sizes (metres) of every level.
+
+    Every level covers the whole face: level ``L`` has ``n_L`` texels along ``u`` of size
+    ``size_u / n_L``, texel ``i`` centred at ``(i + 0.5) * du[L]``.
+    """
 
     levels: tuple[NDArray[np.uint8], ...]
-    du: float
-    dv: float
+    du: tuple[float, ...]
+    dv: tuple[float, ...]
 
 
 @functools.lru_cache(maxsize=128)
 def _cached_levels(nu: int, nv: int, seed: int, shade: float, shape: str) -> tuple[NDArray[np.uint8], ...]:
-    """Mip-map pyramid of a BGRA texture; cached, so re-made scenes reuse their textures."""
+    """Mip-map pyramid of a BGRA texture; cached, so re-made scenes reuse their textures.
+
+    Each level halves the previous one with area averaging (sizes rounded), so it still
+    spans the whole face.
+    """
     bgr = make_texture(nu, nv, seed, shade)
     alpha = ellipse_alpha(nu, nv) if shape == "ellipse" else np.full((nv, nu), 255, np.uint8)
     levels = [np.dstack([bgr, alpha])]
     while min(levels[-1].shape[:2]) >= 16:
-        levels.append(cv2.pyrDown(levels[-1]))
+        h, w = levels[-1].shape[:2]
+        levels.append(cv2.resize(levels[-1], (max(1, round(w / 2)), max(1, round(h / 2))),
+                                 interpolation=cv2.INTER_AREA))
     for lev in levels:
         lev.flags.writeable = False
     return tuple(levels)
@@ -67,7 +77,9 @@ def _build_texture(face: Surface) -> _Texture:
     nu = max(2, int(round(face.size_u / face.texel)))
     nv = max(2, int(round(face.size_v / face.texel)))
     levels = _cached_levels(nu, nv, face.seed, float(face.shade), face.shape)
-    return _Texture(levels, face.size_u / nu, face.size_v / nv)
+    du = tuple(face.size_u / lev.shape[1] for lev in levels)
+    dv = tuple(face.size_v / lev.shape[0] for lev in levels)
+    return _Texture(levels, du, dv)
 
 
 def _textures(scene: BuiltinScene) -> list[_Texture]:
@@ -123,13 +135,15 @@ def _draw_face(img: NDArray[np.uint8], ibuf: NDArray[np.float32], face: Surface,
     if x1 <= x0 or y1 <= y0:
         return
     u_c, v_c = R_cw @ face.axis_u, R_cw @ face.axis_v
-    X0_c = R_cw @ (face.origin - p) + 0.5 * tex.du * u_c + 0.5 * tex.dv * v_c
-    H = K @ np.column_stack([tex.du * u_c, tex.dv * v_c, X0_c])
+    O_c = R_cw @ (face.origin - p)
+    H0 = K @ np.column_stack([tex.du[0] * u_c, tex.dv[0] * v_c, O_c])
     centre = np.clip(proj.mean(0), [x0, y0], [x1 - 1, y1 - 1])
-    level = _mip_level(H, centre, len(tex.levels))
-    S = np.diag([2.0**level, 2.0**level, 1.0])
+    level = _mip_level(H0, centre, len(tex.levels))
+    du, dv = tex.du[level], tex.dv[level]
+    # texel (i, j) of this level is centred at (s, t) = ((i + 0.5) du, (j + 0.5) dv)
+    H = K @ np.column_stack([du * u_c, dv * v_c, O_c + 0.5 * du * u_c + 0.5 * dv * v_c])
     T = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
-    warped = cv2.warpPerspective(tex.levels[level], T @ H @ S, (x1 - x0, y1 - y0),
+    warped = cv2.warpPerspective(tex.levels[level], T @ H, (x1 - x0, y1 - y0),
                                  flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                                  borderValue=(0, 0, 0, 0))
     n_c = R_cw @ n_w
