@@ -260,16 +260,18 @@ def _relative_errors(R_gt: Array, p_gt: Array, R_est: Array, p_est: Array) -> tu
     Rg = np.swapaxes(R_gt[:-1], 1, 2) @ R_gt[1:]  # R_ij, true
     Re = np.swapaxes(R_est[:-1], 1, 2) @ R_est[1:]
     dR = np.swapaxes(Rg, 1, 2) @ Re
-    cos = np.clip((np.trace(dR, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    rot = np.degrees(np.arccos(cos))
+    # angle = atan2(|vee(dR - dR^T)| / 2, (trace - 1) / 2): accurate near 0 (arccos is not)
+    w = np.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0], dR[:, 1, 0] - dR[:, 0, 1]], -1)
+    rot = np.degrees(np.arctan2(0.5 * np.linalg.norm(w, axis=1), 0.5 * (np.trace(dR, axis1=1, axis2=2) - 1.0)))
     tg = np.einsum("nji,nj->ni", R_gt[:-1], p_gt[1:] - p_gt[:-1])  # R_i^T (p_j - p_i)
     te = np.einsum("nji,nj->ni", R_est[:-1], p_est[1:] - p_est[:-1])
     ng, ne = np.linalg.norm(tg, axis=1), np.linalg.norm(te, axis=1)
     scale_g = 1e-12 * (1.0 + np.abs(p_gt).max())
     scale_e = 1e-12 * (1.0 + np.abs(p_est).max())
     ok = (ng > scale_g) & (ne > scale_e)
-    c = np.einsum("ni,ni->n", tg[ok], te[ok]) / (ng[ok] * ne[ok])
-    return rot, np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+    dot = np.einsum("ni,ni->n", tg[ok], te[ok])
+    cross = np.linalg.norm(np.cross(tg[ok], te[ok]), axis=1)
+    return rot, np.degrees(np.arctan2(cross, dot))
 
 
 def evaluate(estimate: Trajectory, ground_truth: Trajectory, max_diff: float = 0.01) -> EvaluationResult:
