@@ -34,10 +34,17 @@ def _probe(path: Path) -> tuple[int, float, tuple[int, int]]:
             raise DatasetError(f"{path}: cannot open video file")
         fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
         size = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
-        # CAP_PROP_FRAME_COUNT is an estimate for some containers: count by grabbing
-        n = 0
-        while cap.grab():
-            n += 1
+        # CAP_PROP_FRAME_COUNT is an estimate for some containers: trust it only when the
+        # last frame it promises decodes and no frame follows; else count by grabbing
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        if n > 0:
+            cap.set(cv2.CAP_PROP_POS_FRAMES, n - 1)
+            if not (cap.grab() and not cap.grab()):
+                n = 0
+        if n <= 0:
+            cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+            while cap.grab():
+                n += 1
     finally:
         cap.release()
     if n == 0:
