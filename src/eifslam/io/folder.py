@@ -89,10 +89,10 @@ def resolve_camera(
     size = (lambda: image_size(first_image)) if first_image is not None else None
     if camera is not None:
         return load_camera(camera, image_size=size, **kwargs)
-    if default_file is None or not default_file.is_file():
-        raise DatasetError(
-            f"{default_file}: camera file not found (pass a camera file explicitly)"
-        )
+    if default_file is None:
+        raise DatasetError("no camera given and the layout has no default camera file")
+    if not default_file.is_file():
+        raise DatasetError(f"{default_file}: camera file not found (pass a camera file explicitly)")
     return load_camera(default_file, image_size=size, **kwargs)
 
 
