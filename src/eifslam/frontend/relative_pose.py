@@ -20,11 +20,13 @@ from .config import FrontEndConfig
 from .matching import essential_ransac
 from .results import Reason, RelativePoseResult
 from .twoview import (
+    cheirality_mask,
     median_parallax_deg,
     pose_error,
     refine_pose,
     rotation_only_parallax_deg,
     sampson_jacobian,
+    sampson_residuals,
 )
 from .uncertainty import first_order_covariance, is_valid_covariance, unscented_covariance
 
@@ -57,6 +59,22 @@ def pose_from_essential(
     n = np.linalg.norm(t)
     t = t / n if n > 0 else np.array([0.0, 0.0, 1.0])
     return R, t, mask.reshape(-1) > 0
+
+
+def _refine(R, t, ui, uj, bi, bj, inl, K, config: FrontEndConfig):
+    """Gauss-Newton on the inliers, re-classify every correspondence by its Sampson
+    residual and cheirality at the refined pose, refine again on the new inlier set."""
+    for _ in range(2):
+        R2, t2, _ = refine_pose(R, t, ui[inl], uj[inl], K, config.refine_iterations)
+        if np.degrees(np.linalg.norm(pose_error(R, t, R2, t2))) > _MAX_REFINE_STEP_DEG:
+            break  # diverged: keep the RANSAC answer
+        r = sampson_residuals(R2, t2, ui, uj, K)
+        new = (np.abs(r) < config.ransac_threshold_px) & cheirality_mask(R2, t2, bi, bj)
+        R, t = R2, t2
+        if np.array_equal(new, inl) or new.sum() < config.min_inliers:
+            break
+        inl = new
+    return R, t, inl
 
 
 def _fail(reason: str, n_common: int, t0: float, **kw) -> RelativePoseResult:
@@ -116,23 +134,25 @@ def estimate_relative_pose(
     if E is None or inl.sum() < config.min_inliers:
         return _fail(Reason.ESSENTIAL_FAILED if E is None else Reason.TOO_FEW_INLIERS, n, t0,
                      n_inliers=int(inl.sum()))
+    bi_all, bj_all = camera.bearing(ui), camera.bearing(uj)
+    # pure rotation / repeated frame: decided before the cheirality test, which is
+    # meaningless without a baseline
+    parallax = rotation_only_parallax_deg(bi_all[inl], bj_all[inl])
+    if parallax < config.min_parallax_deg:
+        return _fail(Reason.NO_PARALLAX, n, t0, n_inliers=int(inl.sum()), parallax_deg=parallax)
     R, t, inl = pose_from_essential(E, ui, uj, K, inl)
+    if inl.sum() < config.min_inliers:
+        return _fail(Reason.TOO_FEW_INLIERS, n, t0, n_inliers=int(inl.sum()), parallax_deg=parallax)
+    parallax = min(parallax, median_parallax_deg(R, bi_all[inl], bj_all[inl]))
+    if parallax < config.min_parallax_deg:
+        return _fail(Reason.NO_PARALLAX, n, t0, n_inliers=int(inl.sum()), parallax_deg=parallax)
+    if config.refine:
+        R, t, inl = _refine(R, t, ui, uj, bi_all, bj_all, inl, K, config)
     n_in = int(inl.sum())
     if n_in < config.min_inliers:
-        return _fail(Reason.TOO_FEW_INLIERS, n, t0, n_inliers=n_in)
+        return _fail(Reason.TOO_FEW_INLIERS, n, t0, n_inliers=n_in, parallax_deg=parallax)
     ui, uj = ui[inl], uj[inl]
-    bi, bj = camera.bearing(ui), camera.bearing(uj)
-    parallax = min(median_parallax_deg(R, bi, bj), rotation_only_parallax_deg(bi, bj))
-    if parallax < config.min_parallax_deg:
-        return _fail(Reason.NO_PARALLAX, n, t0, n_inliers=n_in, parallax_deg=parallax)
-    if config.refine:
-        R2, t2, J = refine_pose(R, t, ui, uj, K, config.refine_iterations)
-        if np.degrees(np.linalg.norm(pose_error(R, t, R2, t2))) < _MAX_REFINE_STEP_DEG:
-            R, t = R2, t2
-        else:
-            J = sampson_jacobian(R, t, ui, uj, K)[1]
-    else:
-        J = sampson_jacobian(R, t, ui, uj, K)[1]
+    J = sampson_jacobian(R, t, ui, uj, K)[1]
     t1 = time.perf_counter()
     P = _covariance(R, t, ui, uj, K, J, config)
     t2 = time.perf_counter()

@@ -27,6 +27,7 @@ __all__ = [
     "refine_pose",
     "sampson_jacobian",
     "median_parallax_deg",
+    "cheirality_mask",
     "rotation_only_parallax_deg",
 ]
 
@@ -229,3 +230,29 @@ def rotation_only_parallax_deg(bearing_i: Array, bearing_j: Array) -> float:
     U, _, Vt = np.linalg.svd(bi.T @ bj)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
     return median_parallax_deg(U @ D @ Vt, bi, bj)
+
+
+def cheirality_mask(R: Array, t: Array, bearing_i: Array, bearing_j: Array) -> NDArray[np.bool_]:
+    """Points triangulated in front of both cameras (mid-point method).
+
+    Solves ``l_i b_i - l_j R b_j = t`` in the least-squares sense for each point.
+
+    Parameters
+    ----------
+    R : (3, 3) ``R_ij``; t : (3,) ``t_ij``; bearing_i, bearing_j : (N, 3).
+
+    Returns
+    -------
+    (N,) bool, True where both depths are positive (False for parallel rays).
+    """
+    bi = np.asarray(bearing_i, float)
+    bj = np.asarray(bearing_j, float) @ np.asarray(R, float).T
+    t = np.asarray(t, float)
+    a, b, c = np.sum(bi * bi, -1), np.sum(bi * bj, -1), np.sum(bj * bj, -1)
+    d, e = bi @ t, bj @ t
+    det = a * c - b * b
+    ok = det > 1e-12
+    det = np.where(ok, det, 1.0)
+    li = (c * d - b * e) / det
+    lj = (b * d - a * e) / det
+    return ok & (li > 0) & (lj > 0)
