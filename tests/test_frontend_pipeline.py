@@ -1,0 +1,207 @@
+"""Front end on images: config, bad input, tracks, the Ωp/Ωm split, degenerate input,
+relocalisation, and a few real frames of kitti-seq1 against ground truth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from eifslam.camera import PinholeCamera
+from eifslam.errors import ConfigError, EstimatorError, ImageError
+from eifslam.frontend import FrontEnd, FrontEndConfig, Reason
+from eifslam.geometry import quat_to_rotmat, quat_xyzw_to_wxyz, rotvec_exp
+
+DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
+CAM = PinholeCamera(500.0, 500.0, 319.5, 239.5, 640, 480)
+
+
+def _texture(rng: np.random.Generator, w: int = 1400, h: int = 1100) -> np.ndarray:
+    """A blob texture with structure at several scales (many keypoints for any detector)."""
+    img = np.zeros((h, w), np.float32)
+    for cell, amp in ((8, 0.5), (24, 0.35), (64, 0.25)):
+        small = rng.random((h // cell + 2, w // cell + 2)).astype(np.float32)
+        img += amp * cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)[:h, :w]
+    img = (img - img.min()) / (img.max() - img.min())
+    return (255 * img).astype(np.uint8)
+
+
+def _rotated_view(tex: np.ndarray, yaw_deg: float, pitch_deg: float = 0.0) -> np.ndarray:
+    """The camera CAM looking at the texture as a plane at infinity, rotated: an exact
+    pure-rotation homography, so any epipolar geometry fits and parallax is zero."""
+    Kt = np.array([[500.0, 0, tex.shape[1] / 2], [0, 500.0, tex.shape[0] / 2], [0, 0, 1]])
+    R = rotvec_exp(np.radians([pitch_deg, yaw_deg, 0.0]))
+    H = Kt @ R @ np.linalg.inv(CAM.K)  # camera pixel -> texture pixel
+    return cv2.warpPerspective(tex, H, (CAM.width, CAM.height), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+
+
+@pytest.fixture(scope="module")
+def texture():
+    return _texture(np.random.default_rng(0))
+
+
+def test_config_rejects_bad_values_naming_the_key():
+    with pytest.raises(ConfigError, match="detector"):
+        FrontEndConfig(detector="harris")
+    with pytest.raises(ConfigError, match="map_fraction"):
+        FrontEndConfig(map_fraction=1.5)
+    with pytest.raises(ConfigError, match="sigma_px"):
+        FrontEndConfig(sigma_px=0.0)
+    with pytest.raises(ConfigError, match="covariance"):
+        FrontEndConfig(covariance="exact")
+    with pytest.raises(ConfigError, match="min_inliers"):
+        FrontEndConfig(min_inliers=2)
+    with pytest.raises(ConfigError, match="bogus"):
+        FrontEndConfig.from_dict({"bogus": 1})
+    assert FrontEndConfig.from_dict({"detector": "orb"}).detector == "orb"
+
+
+@pytest.mark.parametrize("name", ["surf", "akaze"])
+def test_missing_detector_is_a_config_error(name):
+    has = hasattr(cv2, "AKAZE_create") if name == "akaze" else hasattr(getattr(cv2, "xfeatures2d", None), "SURF_create")
+    if has:
+        pytest.skip(f"{name} is available in this OpenCV build")
+    with pytest.raises(ConfigError, match=name):
+        FrontEnd(CAM, FrontEndConfig(detector=name))
+
+
+def test_bad_images_raise_image_error():
+    fe = FrontEnd(CAM)
+    with pytest.raises(ImageError, match="None"):
+        fe.add_frame(None, 0)
+    with pytest.raises(ImageError, match="dtype"):
+        fe.add_frame(np.zeros((480, 640), np.int32), 0)
+    with pytest.raises(ImageError, match="shape"):
+        fe.add_frame(np.zeros((480, 640, 2), np.uint8), 0)
+    with pytest.raises(ImageError, match="camera"):
+        fe.add_frame(np.zeros((240, 320), np.uint8), 0)
+    with pytest.raises(ImageError, match="numpy"):
+        fe.add_frame([[0, 1]], 0)
+    with pytest.raises(EstimatorError):
+        fe.frame(0)
+
+
+def test_black_image_is_a_value(texture):
+    fe = FrontEnd(CAM)
+    r0 = fe.add_frame(_rotated_view(texture, 0.0), 0)
+    r1 = fe.add_frame(np.zeros((480, 640, 3), np.uint8), 1)
+    assert r0.ok and r0.n_features > 500
+    assert not r1.ok and r1.reason == Reason.NO_FEATURES and r1.n_features == 0
+    f = fe.frame(1)
+    assert f.uv.shape == (0, 2) and f.track_ids.dtype == np.int64 and f.colors.shape == (0, 3)
+    rp = fe.relative_pose(0, 1)
+    assert not rp.ok and rp.reason == Reason.TOO_FEW_COMMON and rp.measurement is None
+    r2 = fe.add_frame(np.full((480, 640), 0.5, np.float32), 2)  # textureless, float input
+    assert not r2.ok and r2.reason == Reason.NO_FEATURES
+    with pytest.raises(EstimatorError):
+        fe.add_frame(_rotated_view(texture, 0.0), 2)  # id already used
+
+
+@pytest.mark.parametrize("detector", ["sift", "orb"])
+def test_tracks_and_split_over_a_sequence(texture, detector):
+    cfg = FrontEndConfig(detector=detector, match_window=2, map_fraction=0.3)
+    fe = FrontEnd(CAM, cfg)
+    for k in range(6):
+        image = _rotated_view(texture, 1.5 * k, 0.5 * k)
+        if k == 3:  # a lost frame: tracks resume from frame 2 through the match window
+            image = np.zeros_like(image)
+        res = fe.add_frame(image, k)
+        assert res.ok == (k != 3)
+        assert set(res.timings_ms) == {"detect", "match"}
+    flags: dict[int, bool] = {}
+    for k in range(6):
+        f = fe.frame(k)
+        assert len(np.unique(f.track_ids)) == len(f.track_ids)  # one keypoint per track
+        for t, m in zip(f.track_ids.tolist(), f.in_map.tolist()):
+            assert flags.setdefault(t, m) == m  # a track never changes set
+        ids_m, uv_m = fe.map_observations(k)
+        assert np.all(np.isin(ids_m, f.track_ids[f.in_map])) and len(ids_m) == f.in_map.sum()
+    omega_m = {t for t, m in flags.items() if m}
+    omega_p = {t for t, m in flags.items() if not m}
+    assert not omega_m & omega_p
+    frac = len(omega_m) / len(flags)
+    assert 0.25 < frac < 0.35
+    # tracks recovered across the black frame; matches are geometrically consistent
+    ids, u2, u4 = fe.common_tracks(2, 4)
+    assert len(ids) > 100
+    ids_p, _, _ = fe.common_tracks(2, 4, in_map=False)
+    ids_m, _, _ = fe.common_tracks(2, 4, in_map=True)
+    assert len(ids_p) + len(ids_m) == len(ids) and len(ids_m) > 0.15 * len(ids)
+    H, _ = cv2.findHomography(u2, u4, 0)
+    pred = cv2.perspectiveTransform(u2.reshape(-1, 1, 2), H).reshape(-1, 2)
+    assert np.percentile(np.linalg.norm(pred - u4, axis=1), 99) < 3.0  # no outliers in tracks
+    # pure rotation: a value, with the reason
+    rp = fe.relative_pose(0, 1)
+    assert not rp.ok and rp.reason == Reason.NO_PARALLAX and 0 <= rp.parallax_deg < 0.3
+    assert fe.map_observations(0, min_track_length=2)[0].size < fe.map_observations(0)[0].size
+
+
+def test_repeated_frame_has_no_parallax(texture):
+    fe = FrontEnd(CAM)
+    img = _rotated_view(texture, 2.0)
+    fe.add_frame(img, 0)
+    res = fe.add_frame(img.copy(), 1)
+    assert res.ok and res.n_matches > 300
+    rp = fe.relative_pose(0, 1)
+    assert not rp.ok and rp.reason == Reason.NO_PARALLAX
+    assert fe.relative_pose(1, 1).reason == Reason.SAME_FRAME
+
+
+def test_relocalise_restores_identity(texture):
+    fe = FrontEnd(CAM)
+    fe.add_frame(_rotated_view(texture, 0.0), 0)
+    other = _texture(np.random.default_rng(1))
+    fe.add_frame(_rotated_view(other, 0.0), 1)  # another place: tracking lost
+    res = fe.add_frame(_rotated_view(texture, 1.0), 2)
+    assert not res.ok and res.reason == Reason.TOO_FEW_MATCHES
+    assert len(fe.common_tracks(0, 2)[0]) == 0
+    found = fe.relocalise(2, [1, 0])
+    assert found[0] == (1, 0) and found[1][0] == 0 and found[1][1] > 300
+    ids, _, _ = fe.common_tracks(0, 2)
+    assert len(ids) > 0.8 * found[1][1]
+    assert np.all(ids < len(fe.frame(0).track_ids))  # the older (frame 0) identities won
+    for k in range(3):
+        t = fe.frame(k).track_ids
+        assert len(np.unique(t)) == len(t)
+    fe.forget(0)
+    assert fe.relocalise(2, [0]) == [(0, 0)]
+    assert len(fe.frame(0).uv) > 0
+
+
+def _load_kitti(n):
+    d = DATASETS / "kitti-seq1"
+    if not (d / "images").is_dir():
+        pytest.skip(f"shared datasets not found at {DATASETS} (kitti-seq1 needed)")
+    import yaml
+
+    c = yaml.safe_load((d / "camera.yaml").read_text())
+    cam = PinholeCamera(c["fx"], c["fy"], c["cx"], c["cy"], c["width"], c["height"], tuple(c["distortion"]))
+    files = sorted((d / "images").iterdir())[:n]
+    gt = np.loadtxt(d / "groundtruth.tum")[:n]
+    return cam, [cv2.imread(str(f), cv2.IMREAD_UNCHANGED) for f in files], gt
+
+
+def test_kitti_relative_poses_against_ground_truth():
+    cam, images, gt = _load_kitti(4)
+    fe = FrontEnd(cam)
+    rot_err, dir_err = [], []
+    for k, img in enumerate(images):
+        assert fe.add_frame(img, k).ok
+        if k == 0:
+            continue
+        rp = fe.relative_pose(k - 1, k)
+        assert rp.ok, rp.reason
+        m = rp.measurement
+        assert (m.i, m.j) == (k - 1, k) and rp.n_inliers > 100
+        Ri = quat_to_rotmat(quat_xyzw_to_wxyz(gt[k - 1, 4:]))
+        Rj = quat_to_rotmat(quat_xyzw_to_wxyz(gt[k, 4:]))
+        t = Ri.T @ (gt[k, 1:4] - gt[k - 1, 1:4])
+        dR = quat_to_rotmat(m.q_ij).T @ (Ri.T @ Rj)
+        rot_err.append(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+        dir_err.append(np.degrees(np.arccos(np.clip(m.t_ij @ t / np.linalg.norm(t), -1, 1))))
+        sd = np.sqrt(np.diag(m.cov))
+        assert np.all(sd > 0) and np.degrees(sd[:3]).max() < 0.5
+    assert 0.0 < np.median(rot_err) < 0.3
+    assert 0.0 < np.median(dir_err) < 2.0
