@@ -75,6 +75,9 @@ _TEXEL_TABLE = 0.002
 _TEXEL_FLOOR = 0.004
 _TEXEL_WALL = 0.005
 _TILE = 2.0  # floor and wall tiles, metres
+# BGR tint per kind of surface, so that boxes, table, floor and walls differ in tone
+_TINT = {"box": (1.0, 1.0, 1.0), "table": (0.55, 0.75, 1.0), "floor": (0.55, 0.55, 0.55),
+         "wall": (1.0, 0.9, 0.8)}
 
 
 @dataclass(frozen=True, eq=False)
@@ -101,8 +104,9 @@ class Surface:
         ``"rect"`` or ``"ellipse"`` (the ellipse inscribed in the rectangle).
     seed : int
         Seed of this face's texture (distinct per face).
-    shade : float
-        Constant brightness factor (a fixed Lambertian light), in ``(0, 1]``.
+    shade : (float, float, float)
+        Constant BGR factors: a fixed Lambertian light times a tint per kind of surface
+        (warm table, darker floor), each in ``(0, 1]``.
     """
 
     name: str
@@ -115,7 +119,7 @@ class Surface:
     texel: float
     shape: str
     seed: int
-    shade: float
+    shade: tuple[float, float, float]
 
     @property
     def normal(self) -> Array:
@@ -250,7 +254,8 @@ def _face(name: str, kind: str, center: Array, normal: Array, axis_u: Array,
     u = np.asarray(axis_u, float)
     v = np.cross(u, n)  # so that cross(v, u) == n
     light = np.array([0.3, -0.5, 0.81])
-    shade = 0.7 + 0.3 * max(0.0, float(n @ light / np.linalg.norm(light)))
+    lambert = 0.7 + 0.3 * max(0.0, float(n @ light / np.linalg.norm(light)))
+    shade = tuple(round(lambert * c, 6) for c in _TINT[kind])
     origin = np.asarray(center, float) - 0.5 * size_u * u - 0.5 * size_v * v
     return Surface(name, kind, origin, u, v, float(size_u), float(size_v), texel, shape, seed, shade)
 

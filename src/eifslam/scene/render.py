@@ -54,7 +54,7 @@ class _Texture:
 
 
 @functools.lru_cache(maxsize=128)
-def _cached_levels(nu: int, nv: int, seed: int, shade: float, shape: str) -> tuple[NDArray[np.uint8], ...]:
+def _cached_levels(nu: int, nv: int, seed: int, shade: tuple[float, float, float], shape: str) -> tuple[NDArray[np.uint8], ...]:
     """Mip-map pyramid of a BGRA texture; cached, so re-made scenes reuse their textures.
 
     Each level halves the previous one with area averaging (sizes rounded), so it still
@@ -76,7 +76,7 @@ def _build_texture(face: Surface) -> _Texture:
     """The texture of one face (texel counts rounded from ``size / texel``)."""
     nu = max(2, int(round(face.size_u / face.texel)))
     nv = max(2, int(round(face.size_v / face.texel)))
-    levels = _cached_levels(nu, nv, face.seed, float(face.shade), face.shape)
+    levels = _cached_levels(nu, nv, face.seed, tuple(face.shade), face.shape)
     du = tuple(face.size_u / lev.shape[1] for lev in levels)
     dv = tuple(face.size_v / lev.shape[0] for lev in levels)
     return _Texture(levels, du, dv)
@@ -196,7 +196,8 @@ def render_frame(scene: BuiltinScene, k: int, noise_sigma: float = 0.0, blur_sig
         img = cv2.GaussianBlur(img, (0, 0), float(blur_sigma))
     if noise_sigma > 0:
         rng = rng if rng is not None else np.random.default_rng((scene.seed, int(k)))
-        noisy = img.astype(np.float32) + rng.normal(0.0, noise_sigma, img.shape).astype(np.float32)
+        noise = rng.standard_normal(img.shape, dtype=np.float32) * np.float32(noise_sigma)
+        noisy = img.astype(np.float32) + noise
         img = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
     return img
 

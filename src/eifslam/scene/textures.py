@@ -102,7 +102,8 @@ def _text(img: NDArray[np.uint8], rng: np.random.Generator, min_height: float) -
         height /= 2.0
 
 
-def make_texture(width: int, height: int, seed: int, shade: float = 1.0) -> NDArray[np.uint8]:
+def make_texture(width: int, height: int, seed: int,
+                 shade: float | tuple[float, float, float] = 1.0) -> NDArray[np.uint8]:
     """A distinctive multi-scale texture.
 
     Parameters
@@ -111,8 +112,8 @@ def make_texture(width: int, height: int, seed: int, shade: float = 1.0) -> NDAr
         Texture size in texels.
     seed : int
         Seed of a fresh :class:`numpy.random.Generator`; the same seed gives the same image.
-    shade : float
-        Brightness factor applied at the end (constant face lighting).
+    shade : float or (3,) BGR factors
+        Brightness factor(s) applied at the end (constant face lighting and tint).
 
     Returns
     -------
@@ -127,7 +128,7 @@ def make_texture(width: int, height: int, seed: int, shade: float = 1.0) -> NDAr
     _text(img, rng, min_height=7.0)
     grain = rng.standard_normal(size=img.shape, dtype=np.float32) * np.float32(6.0)
     img = cv2.GaussianBlur(img.astype(np.float32) + grain, (0, 0), 0.6)
-    return np.clip(img * np.float32(shade), 0, 255).astype(np.uint8)
+    return np.clip(img * np.asarray(shade, np.float32), 0, 255).astype(np.uint8)
 
 
 def ellipse_alpha(width: int, height: int) -> NDArray[np.uint8]:
