@@ -1,0 +1,105 @@
+"""Typed configuration of the whole system, with key and range checking.
+
+``SlamConfig`` groups the front end's, the filter's and the system's settings. Build it
+from a nested mapping with :meth:`SlamConfig.from_dict`; an unknown key or an
+out-of-range value raises :class:`~eifslam.errors.ConfigError` naming it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+from .errors import ConfigError
+from .filter import FilterConfig
+from .frontend import FrontEndConfig
+
+
+@dataclass(frozen=True)
+class SystemConfig:
+    """Settings of the SLAM system (paper III-C, III-D, III-E).
+
+    Attributes
+    ----------
+    mode : {"filter", "smooth"}
+        Filter only, or filter + relinearise + smooth at the end of a run.
+    smooth_passes : int
+        At most this many relinearisation passes when smoothing (paper: one is enough).
+    reference_candidates : int
+        How many of the most recent known poses to try as the reference of a new image.
+    relocalise_candidates : int
+        How many older poses to try when the recent ones fail (tracking lost).
+    min_feature_parallax_deg : float
+        A map feature is created once two of its rays differ by this angle.
+    sigma_px : float
+        Standard deviation of a map feature's pixel measurement ``Zm``.
+    scale_distance : float
+        Length given to the distance between the first two poses (the scale gauge).
+    """
+
+    mode: str = "smooth"
+    smooth_passes: int = 5
+    reference_candidates: int = 4
+    relocalise_candidates: int = 30
+    min_feature_parallax_deg: float = 1.5
+    sigma_px: float = 1.0
+    scale_distance: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("filter", "smooth"):
+            raise ConfigError(f"system.mode must be 'filter' or 'smooth', got {self.mode!r}")
+        for key in ("smooth_passes", "reference_candidates"):
+            if int(getattr(self, key)) < 1:
+                raise ConfigError(f"system.{key} must be at least 1")
+        if self.relocalise_candidates < 0:
+            raise ConfigError("system.relocalise_candidates must be >= 0")
+        for key in ("min_feature_parallax_deg", "sigma_px", "scale_distance"):
+            v = getattr(self, key)
+            if not (isinstance(v, (int, float)) and v > 0):
+                raise ConfigError(f"system.{key} must be a positive number, got {v!r}")
+
+
+def _build(cls: type, values: Mapping[str, Any], prefix: str):
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise ConfigError(f"unknown configuration key {prefix}.{unknown[0]} (known: {', '.join(sorted(names))})")
+    try:
+        return cls(**values)
+    except TypeError as exc:
+        raise ConfigError(f"bad value in {prefix}: {exc}") from exc
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    """Front end, filter and system settings."""
+
+    frontend: FrontEndConfig = field(default_factory=FrontEndConfig)
+    filter: FilterConfig = field(default_factory=lambda: FilterConfig(gate_chi2=30.0))
+    system: SystemConfig = field(default_factory=SystemConfig)
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> "SlamConfig":
+        """Build from ``{"frontend": {...}, "filter": {...}, "system": {...}}``."""
+        unknown = sorted(set(values) - {"frontend", "filter", "system"})
+        if unknown:
+            raise ConfigError(f"unknown configuration section {unknown[0]!r} (known: frontend, filter, system)")
+        base = cls()
+        fe = dataclasses.asdict(base.frontend) | dict(values.get("frontend", {}))
+        fi = dataclasses.asdict(base.filter) | dict(values.get("filter", {}))
+        sy = dataclasses.asdict(base.system) | dict(values.get("system", {}))
+        return cls(
+            frontend=_build(FrontEndConfig, fe, "frontend"),
+            filter=_build(FilterConfig, fi, "filter"),
+            system=_build(SystemConfig, sy, "system"),
+        )
+
+    def replace(self, **sections: Mapping[str, Any]) -> "SlamConfig":
+        """A copy with some keys of some sections changed, e.g. ``replace(system={"mode": "filter"})``."""
+        d = {k: dataclasses.asdict(getattr(self, k)) for k in ("frontend", "filter", "system")}
+        for sec, vals in sections.items():
+            if sec not in d:
+                raise ConfigError(f"unknown configuration section {sec!r}")
+            d[sec] = d[sec] | dict(vals)
+        return SlamConfig.from_dict(d)

@@ -1,0 +1,301 @@
+"""The SLAM system a user runs: Algorithm 1 over a stream of images (paper III-C to III-E).
+
+>>> slam = Slam(camera)                              # doctest: +SKIP
+>>> result = slam.track(image, timestamp)            # doctest: +SKIP
+>>> result.state, result.position, result.covariance # doctest: +SKIP
+
+Each image goes through the front end (features, tracks, ``Ωp``/``Ωm`` split), is
+related to a known pose by ``ZR``/``ZT``, initialised (III-C), augmented into the state
+with zeros and fused (Algorithm 1). A frame that cannot be localised is reported
+``LOST`` and does not enter the state; tracking resumes as soon as a later frame relates
+to any known pose.
+"""
+
+from __future__ import annotations
+
+import pickle
+import time
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .camera import PinholeCamera
+from .config import SlamConfig
+from .errors import EifslamError, EstimatorError
+from .filter import InformationFilter
+from .frontend import FrontEnd
+from .frontend.results import RelativePoseResult
+from .initialisation import pose_from_relative, triangulate
+from .measurements import FeatureObservations
+from .smoothing import SmoothingReport, recover_scale, smooth
+
+Array = NDArray[np.float64]
+
+
+class TrackingState(str, Enum):
+    """Per-frame tracking state (ORB-SLAM's ``eTrackingState``)."""
+
+    INITIALISING = "initialising"
+    TRACKING = "tracking"
+    LOST = "lost"
+
+
+@dataclass
+class TrackResult:
+    """What :meth:`Slam.track` returns for one image.
+
+    Attributes
+    ----------
+    frame_id : int
+    timestamp : float, seconds.
+    state : TrackingState
+    position : (3,) camera centre in the world frame, or None when lost.
+    quat_wxyz : (4,) orientation ``q_wc``, or None when lost.
+    covariance : (6, 6) covariance of ``[p, dtheta]`` (see
+        :meth:`InformationFilter.pose_covariance`), or None.
+    reason : why the frame is lost / initialising ("" when tracking).
+    reference : frame id of the reference pose, or None.
+    timings_ms : per-stage milliseconds.
+    """
+
+    frame_id: int
+    timestamp: float
+    state: TrackingState
+    position: Array | None = None
+    quat_wxyz: Array | None = None
+    covariance: Array | None = None
+    reason: str = ""
+    reference: int | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    map_features: int = 0
+    state_dim: int = 0
+
+
+class Slam:
+    """Monocular SLAM with the exactly sparse EIF.
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+    config : SlamConfig, optional
+    """
+
+    def __init__(self, camera: PinholeCamera, config: SlamConfig | None = None) -> None:
+        self.camera = camera
+        self.config = config or SlamConfig()
+        self.frontend = FrontEnd(camera, self.config.frontend)
+        self.filter = InformationFilter(camera, self.config.filter)
+        self.results: list[TrackResult] = []
+        self._timestamps: dict[int, float] = {}
+        self._track_obs: dict[int, list[tuple[int, Array]]] = {}
+        self._colors: dict[int, NDArray[np.uint8]] = {}
+        self._last_step = self.config.system.scale_distance
+        self.smoothing: SmoothingReport | None = None
+
+    # -- queries ------------------------------------------------------------------
+    @property
+    def n_frames(self) -> int:
+        return len(self.results)
+
+    def trajectory(self) -> tuple[Array, Array, Array]:
+        """Timestamps ``(P,)``, positions ``(P, 3)`` and quaternions ``(P, 4)`` of every
+        tracked frame, in frame order, from the current estimate."""
+        ids, P, Q = self.filter.poses()
+        order = np.argsort(ids)
+        t = np.array([self._timestamps[i] for i in ids])[order]
+        return t, P[order], Q[order]
+
+    def map(self) -> tuple[NDArray[np.int64], Array, NDArray[np.uint8]]:
+        """Map feature ids ``(F,)``, positions ``(F, 3)`` and RGB colours ``(F, 3)``."""
+        ids, X = self.filter.features()
+        cols = np.array([self._colors.get(i, np.array([200, 200, 200], np.uint8)) for i in ids], np.uint8).reshape(-1, 3)
+        return np.asarray(ids, np.int64), X, cols
+
+    def feature_covariance(self, track_id: int) -> Array:
+        """3x3 covariance of a map feature."""
+        return self.filter.feature_covariance(track_id)
+
+    # -- the per-image entry point -------------------------------------------------
+    def track(self, image: np.ndarray, timestamp: float | None = None) -> TrackResult:
+        """Process one image: the pose, its covariance and the tracking state.
+
+        Bad input (an unreadable array) raises :class:`~eifslam.errors.ImageError`; a frame
+        that cannot be localised (no texture, no parallax, too few matches) is a LOST
+        result, not an exception.
+        """
+        k = self.n_frames
+        ts = float(k if timestamp is None else timestamp)
+        t0 = time.perf_counter()
+        fr = self.frontend.add_frame(image, k)
+        timings = dict(fr.timings_ms)
+        self._timestamps[k] = ts
+        if fr.n_features == 0 and not fr.ok:
+            return self._finish(TrackResult(k, ts, self._lost_state(), reason=fr.reason, timings_ms=timings), t0)
+        if self.filter.layout.n_poses == 0:
+            self.filter.add_pose(k, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+            self.filter.fix_pose(k)
+            self._record_map_observations(k)
+            res = TrackResult(k, ts, TrackingState.INITIALISING, np.zeros(3), np.array([1.0, 0, 0, 0]),
+                              reason="first frame: world frame", timings_ms=timings)
+            return self._finish(res, t0)
+        rp, tried = self._find_reference(k, timings)
+        if rp is None:
+            reason = tried.reason if tried is not None else "no known pose to relate to"
+            return self._finish(TrackResult(k, ts, self._lost_state(), reason=f"lost: {reason}", timings_ms=timings), t0)
+        try:
+            self._localise_and_fuse(k, rp, timings)
+        except EstimatorError as exc:  # keep the run alive; the frame counts as lost
+            return self._finish(TrackResult(k, ts, self._lost_state(), reason=f"lost: {exc}", timings_ms=timings), t0)
+        p, q = self.filter.pose(k)
+        cov = self.filter.pose_covariance(k)
+        res = TrackResult(k, ts, TrackingState.TRACKING, p, q, cov, reference=rp.measurement.i, timings_ms=timings)
+        return self._finish(res, t0)
+
+    def _lost_state(self) -> TrackingState:
+        return TrackingState.INITIALISING if self.filter.layout.n_poses < 2 else TrackingState.LOST
+
+    def _finish(self, res: TrackResult, t0: float) -> TrackResult:
+        res.timings_ms["total"] = 1e3 * (time.perf_counter() - t0)
+        res.map_features = self.filter.layout.n_features
+        res.state_dim = self.filter.dim
+        self.results.append(res)
+        return res
+
+    def _find_reference(self, k: int, timings: dict) -> tuple[RelativePoseResult | None, RelativePoseResult | None]:
+        """Try recent known poses, then older ones after relocalisation (III-C, III-F)."""
+        sysc = self.config.system
+        known = self.filter.layout.pose_ids[::-1]
+        last = None
+        t_rp = t_cov = 0.0
+        recent = known[: sysc.reference_candidates]
+        older = known[sysc.reference_candidates : sysc.reference_candidates + sysc.relocalise_candidates]
+        for group, reloc in ((recent, False), (older, True)):
+            if not group:
+                continue
+            if reloc:
+                matches = self.frontend.relocalise(k, group)
+                group = [c for c, n in sorted(matches, key=lambda cn: -cn[1]) if n > 0][:5]
+            for c in group:
+                r = self.frontend.relative_pose(c, k)
+                t_rp += r.timings_ms.get("relative_pose", 0.0)
+                t_cov += r.timings_ms.get("covariance", 0.0)
+                last = r
+                if r.ok:
+                    timings["relative_pose"], timings["covariance"] = t_rp, t_cov
+                    return r, r
+        timings["relative_pose"], timings["covariance"] = t_rp, t_cov
+        return None, last
+
+    def _record_map_observations(self, k: int) -> tuple[NDArray[np.int64], Array]:
+        ids, uv = self.frontend.map_observations(k)
+        ff = self.frontend.frame(k)
+        col = dict(zip(ff.track_ids.tolist(), ff.colors))
+        for t, u in zip(ids.tolist(), uv):
+            self._track_obs.setdefault(t, []).append((k, u))
+            if t not in self._colors and t in col:
+                self._colors[t] = np.asarray(col[t], np.uint8)
+        return ids, uv
+
+    def _localise_and_fuse(self, k: int, rpr: RelativePoseResult, timings: dict) -> None:
+        """Algorithm 1: initial guesses, augment with zeros, fuse, recover."""
+        filt, sysc = self.filter, self.config.system
+        rp = rpr.measurement
+        t0 = time.perf_counter()
+        ids, uv = self.frontend.map_observations(k)
+        known = filt.layout.has_features(ids)
+        Xk = filt.x[filt.layout.feature_columns(ids[known])] if known.any() else np.zeros((0, 3))
+        p_i, q_i = filt.pose(rp.i)
+        first_step = filt.layout.n_poses == 1
+        init = pose_from_relative(p_i, q_i, rp, self.camera, Xk, uv[known],
+                                  default_step=sysc.scale_distance if first_step else self._last_step)
+        p_k, q_k, step = init
+        filt.add_pose(k, p_k, q_k)
+        if first_step:
+            filt.set_scale(rp.i, k, sysc.scale_distance)
+        self._last_step = step if step > 0 else self._last_step
+        filt.fuse_relative([rp])
+        ids, uv = self._record_map_observations(k)
+        batch = self._new_features(k, ids, uv)
+        t1 = time.perf_counter()
+        filt.fuse_features(batch)
+        t2 = time.perf_counter()
+        filt.recover()
+        t3 = time.perf_counter()
+        timings.update(init=1e3 * (t1 - t0), fuse=1e3 * (t2 - t1), recover=1e3 * (t3 - t2))
+
+    def _new_features(self, k: int, ids: NDArray[np.int64], uv: Array) -> FeatureObservations:
+        """``Zm`` of frame *k* for known features, plus every observation of features that
+        can now be triangulated (Algorithm 1 step 3)."""
+        filt, sysc = self.filter, self.config.system
+        known = filt.layout.has_features(ids)
+        p_k, q_k = filt.pose(k)
+        poses, feats, uvs = [np.full(int(known.sum()), k)], [ids[known]], [uv[known]]
+        new_ids, new_X = [], []
+        for t, u in zip(ids[~known].tolist(), uv[~known]):
+            hist = [(j, v) for j, v in self._track_obs.get(t, []) if j != k and filt.layout.has_pose(j)]
+            if not hist:
+                continue
+            j, v = hist[0]
+            p_j, q_j = filt.pose(j)
+            X, par, ok = triangulate(p_j, q_j, v[None], p_k, q_k, u[None], self.camera)
+            if not (ok[0] and par[0] >= sysc.min_feature_parallax_deg):
+                continue
+            new_ids.append(t)
+            new_X.append(X[0])
+            for jj, vv in hist:
+                poses.append(np.array([jj]))
+                feats.append(np.array([t]))
+                uvs.append(vv[None])
+            poses.append(np.array([k]))
+            feats.append(np.array([t]))
+            uvs.append(u[None])
+        if new_ids:
+            filt.add_features(new_ids, np.array(new_X))
+        return FeatureObservations.make(np.concatenate(poses), np.concatenate(feats),
+                                        np.concatenate(uvs).reshape(-1, 2), sysc.sigma_px)
+
+    # -- after the run ------------------------------------------------------------
+    def smooth(self, max_passes: int | None = None) -> SmoothingReport:
+        """Relinearise every stored measurement and recover (paper III-E)."""
+        if self.filter.layout.n_poses < 2:
+            raise EifslamError("nothing to smooth: fewer than two poses are tracked")
+        self.smoothing = smooth(self.filter, max_passes or self.config.system.smooth_passes)
+        return self.smoothing
+
+    def set_scale(self, a: tuple[str, int], b: tuple[str, int], length: float) -> float:
+        """Scale recovery (paper V): make the distance between two states ``length``."""
+        return recover_scale(self.filter, a, b, length)
+
+    # -- sessions -----------------------------------------------------------------
+    def save(self, path: str | Path) -> None:
+        """Save the whole session (filter, front end, results) to a file."""
+        fe = self.frontend
+        detector, matcher = fe._detector, fe._matcher
+        fe._detector = fe._matcher = None
+        try:
+            with open(path, "wb") as fh:
+                pickle.dump({"version": 1, "slam": self}, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        finally:
+            fe._detector, fe._matcher = detector, matcher
+
+    @staticmethod
+    def load(path: str | Path) -> "Slam":
+        """Load a session saved by :meth:`save`."""
+        from .frontend.features import make_detector
+        from .frontend.matching import DescriptorMatcher
+
+        try:
+            with open(path, "rb") as fh:
+                blob = pickle.load(fh)
+        except (OSError, pickle.UnpicklingError, EOFError) as exc:
+            raise EifslamError(f"cannot load session {path}: {exc}") from exc
+        if not isinstance(blob, dict) or blob.get("version") != 1:
+            raise EifslamError(f"{path} is not an eifslam session file")
+        slam: Slam = blob["slam"]
+        cfg = slam.config.frontend
+        slam.frontend._detector = make_detector(cfg)
+        slam.frontend._matcher = DescriptorMatcher(cfg.ratio, cfg.mutual)
+        return slam
