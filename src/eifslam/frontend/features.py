@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from ..camera import PinholeCamera
 from ..errors import ConfigError, ImageError
 from .config import FrontEndConfig
-from .split import integral_image, laplacian_sign
+from .split import laplacian_sign
 
 Array = NDArray[np.float64]
 
@@ -187,7 +187,7 @@ def detect_features(
         keep = np.argsort(-response, kind="stable")[: config.max_features]
         uv_raw, size, response, desc = uv_raw[keep], size[keep], response[keep], desc[keep]
     scale = 0.5 * size  # OpenCV's size is a diameter of about 2 sigma (SIFT)
-    sign = laplacian_sign(integral_image(gray), uv_raw, scale)
+    sign = laplacian_sign(cv2.integral(gray, sdepth=cv2.CV_64F), uv_raw, scale)
     x = np.clip(np.rint(uv_raw[:, 0]).astype(int), 0, camera.width - 1)
     y = np.clip(np.rint(uv_raw[:, 1]).astype(int), 0, camera.height - 1)
     colors = rgb[y, x]

@@ -206,7 +206,8 @@ class FrontEnd:
         if len(ia) < self.config.min_matches:
             return ia[:0], ib[:0]
         _, inl = essential_ransac(uv_b[ib], uv_a[ia], self.camera.K,
-                                  self.config.ransac_threshold_px, self.config.ransac_confidence)
+                                  self.config.ransac_threshold_px, self.config.ransac_confidence,
+                                  self.config.ransac_method)
         if inl.sum() < self.config.min_matches:
             return ia[:0], ib[:0]
         return ia[inl], ib[inl]

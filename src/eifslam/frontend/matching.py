@@ -75,8 +75,11 @@ class DescriptorMatcher:
         return i1[first], i2[first]
 
 
+_METHODS = {"usac": cv2.USAC_DEFAULT, "magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
+
+
 def essential_ransac(
-    uv1: Array, uv2: Array, K: Array, threshold_px: float, confidence: float
+    uv1: Array, uv2: Array, K: Array, threshold_px: float, confidence: float, method: str = "usac"
 ) -> tuple[Array | None, NDArray[np.bool_]]:
     """Five-point essential matrix in RANSAC (OpenCV) between undistorted pixels.
 
@@ -87,6 +90,7 @@ def essential_ransac(
     threshold_px : float
         Inlier threshold on the epipolar distance, pixels.
     confidence : float
+    method : {"usac", "magsac", "ransac"}
 
     Returns
     -------
@@ -102,7 +106,7 @@ def essential_ransac(
             np.ascontiguousarray(uv1, np.float64),
             np.ascontiguousarray(uv2, np.float64),
             np.asarray(K, np.float64),
-            method=cv2.RANSAC,
+            method=_METHODS[method],
             prob=confidence,
             threshold=threshold_px,
         )

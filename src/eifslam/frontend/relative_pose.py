@@ -130,13 +130,17 @@ def estimate_relative_pose(
     if n < max(config.min_common, 5):
         return _fail(Reason.TOO_FEW_COMMON, n, t0)
     K = camera.K
-    E, inl = essential_ransac(ui, uj, K, config.ransac_threshold_px, config.ransac_confidence)
+    bi_all, bj_all = camera.bearing(ui), camera.bearing(uj)
+    # pure rotation / repeated frame: decided before any solver (which may fail or pick an
+    # arbitrary baseline on such input), and again on the RANSAC inliers below
+    parallax = rotation_only_parallax_deg(bi_all, bj_all)
+    if parallax < config.min_parallax_deg:
+        return _fail(Reason.NO_PARALLAX, n, t0, parallax_deg=parallax)
+    E, inl = essential_ransac(ui, uj, K, config.ransac_threshold_px, config.ransac_confidence,
+                              config.ransac_method)
     if E is None or inl.sum() < config.min_inliers:
         return _fail(Reason.ESSENTIAL_FAILED if E is None else Reason.TOO_FEW_INLIERS, n, t0,
                      n_inliers=int(inl.sum()))
-    bi_all, bj_all = camera.bearing(ui), camera.bearing(uj)
-    # pure rotation / repeated frame: decided before the cheirality test, which is
-    # meaningless without a baseline
     parallax = rotation_only_parallax_deg(bi_all[inl], bj_all[inl])
     if parallax < config.min_parallax_deg:
         return _fail(Reason.NO_PARALLAX, n, t0, n_inliers=int(inl.sum()), parallax_deg=parallax)
