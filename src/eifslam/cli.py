@@ -16,7 +16,7 @@ from . import __version__
 from .errors import EifslamError
 
 #: sub-command modules, in the order ``--help`` lists them
-COMMANDS = ("demo", "run", "render", "eval", "synthetic")
+COMMANDS = ("demo", "run", "render", "eval")
 
 
 def build_parser() -> argparse.ArgumentParser:
