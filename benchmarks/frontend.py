@@ -11,8 +11,8 @@ writes ``OUT/frontend.json``::
               "zr_error_deg_median", "zt_error_deg_median", ...}, "orb": {...}, "akaze": {...}}
 
 ``ms_*`` is the whole front end per frame: ``add_frame`` plus ``relative_pose`` with the
-previous frame. The errors (when the folder has ``groundtruth.tum``) are over consecutive
-pairs whose relative pose is usable: the rotation error of ``ZR`` and the angle between
+frame ``k - step`` (``--step``, default 1). The errors (when the folder has ``groundtruth.tum``) are over the
+pairs (k - step, k) whose relative pose is usable: the rotation error of ``ZR`` and the angle between
 ``ZT``'s direction and the true one, the truth being ``R_ij = R_wi.T R_wj`` and
 ``t_ij ∝ R_wi.T (p_j - p_i)`` from the camera-to-world ground truth (scoring only).
 A detector missing from the installed OpenCV gets ``{"error": "..."}``.
@@ -55,7 +55,7 @@ def true_relative(gt: np.ndarray, i: int, j: int):
     return Ri.T @ Rj, Ri.T @ (gt[j, 1:4] - gt[i, 1:4])
 
 
-def run(detector: str, cam, images, gt, overrides: dict) -> dict:
+def run(detector: str, cam, images, gt, overrides: dict, step: int = 1) -> dict:
     try:
         fe = FrontEnd(cam, FrontEndConfig.from_dict({"detector": detector, **overrides}))
     except ConfigError as exc:
@@ -65,7 +65,7 @@ def run(detector: str, cam, images, gt, overrides: dict) -> dict:
     for k, img in enumerate(images):
         t0 = time.perf_counter()
         res = fe.add_frame(img, k)
-        rp = fe.relative_pose(k - 1, k) if k > 0 else None
+        rp = fe.relative_pose(k - step, k) if k >= step else None
         total.append((time.perf_counter() - t0) * 1e3)
         for key in ("detect", "match"):
             stages[key].append(res.timings_ms[key])
@@ -79,7 +79,7 @@ def run(detector: str, cam, images, gt, overrides: dict) -> dict:
         inliers.append(rp.n_inliers)
         parallax.append(rp.parallax_deg)
         if gt is not None:
-            R, t = true_relative(gt, k - 1, k)
+            R, t = true_relative(gt, k - step, k)
             m = rp.measurement
             dR = quat_to_rotmat(m.q_ij).T @ R
             rot_err.append(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
@@ -89,7 +89,8 @@ def run(detector: str, cam, images, gt, overrides: dict) -> dict:
         "ms_median": float(np.median(total[1:])),
         "ms_p95": float(np.percentile(total[1:], 95)),
         "stages_ms_median": {k: float(np.median(v)) for k, v in stages.items()},
-        "pairs": len(images) - 1,
+        "pairs": len(images) - step,
+        "step": step,
         "usable_pairs": len(inliers),
         "reasons": reasons,
         "inliers_median": float(np.median(inliers)) if inliers else 0.0,
@@ -107,6 +108,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True, type=Path, help="output folder for frontend.json")
     ap.add_argument("--detectors", default="sift,orb,akaze")
     ap.add_argument("--limit", type=int, default=None, help="use the first N images only")
+    ap.add_argument("--step", type=int, default=1,
+                    help="relative pose of frame k with frame k - step (default: consecutive)")
     ap.add_argument("--threads", type=int, default=2, help="cv2.setNumThreads")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="FrontEndConfig overrides, e.g. max_features=1000")
@@ -120,7 +123,7 @@ def main(argv=None) -> int:
     images = [cv2.imread(str(f), cv2.IMREAD_UNCHANGED) for f in files]  # read outside the timing
     results = {}
     for det in args.detectors.split(","):
-        results[det] = run(det, cam, images, gt, overrides)
+        results[det] = run(det, cam, images, gt, overrides, args.step)
         print(det, json.dumps(results[det]), file=sys.stderr)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "frontend.json").write_text(json.dumps(results, indent=2))

@@ -64,7 +64,12 @@ class FrontEndConfig:
     min_common : int >= 5
         Minimum ``Ωp`` tracks common to the two frames before trying a relative pose.
     min_parallax_deg : float >= 0
-        Minimum median parallax (angle between rotation-compensated bearings), degrees.
+        Minimum median parallax, degrees: the angle between the bearings of frame *i* and
+        the bearings of frame *j* rotated by the estimated ``R_ij`` (triangulation angle).
+    min_rotation_residual_deg : float >= 0
+        Pure-rotation test, degrees: the median angle left after the best pure-rotation
+        fit of the bearings must exceed this (about the noise level for a pure rotation or
+        a repeated frame); below it the pair has "no parallax" whatever the solver says.
     refine : bool
         Refine the RANSAC ``R, t`` by Gauss-Newton on the inliers' Sampson error.
     refine_iterations : int >= 1
@@ -97,7 +102,8 @@ class FrontEndConfig:
     # relative pose
     min_inliers: int = 15
     min_common: int = 20
-    min_parallax_deg: float = 0.3
+    min_parallax_deg: float = 0.5
+    min_rotation_residual_deg: float = 0.1
     refine: bool = True
     refine_iterations: int = 3
     # uncertainty
@@ -140,6 +146,7 @@ class FrontEndConfig:
             "ransac_threshold_px": lambda v: 0.0 < v < 1e3,
             "ransac_confidence": lambda v: 0.0 < v < 1.0,
             "min_parallax_deg": lambda v: 0.0 <= v < 90.0,
+            "min_rotation_residual_deg": lambda v: 0.0 <= v < 90.0,
             "sigma_px": lambda v: 0.0 < v < 1e3,
         }
         for key, ok in checks.items():

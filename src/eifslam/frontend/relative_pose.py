@@ -133,21 +133,21 @@ def estimate_relative_pose(
     bi_all, bj_all = camera.bearing(ui), camera.bearing(uj)
     # pure rotation / repeated frame: decided before any solver (which may fail or pick an
     # arbitrary baseline on such input), and again on the RANSAC inliers below
-    parallax = rotation_only_parallax_deg(bi_all, bj_all)
-    if parallax < config.min_parallax_deg:
-        return _fail(Reason.NO_PARALLAX, n, t0, parallax_deg=parallax)
+    residual = rotation_only_parallax_deg(bi_all, bj_all)
+    if residual < config.min_rotation_residual_deg:
+        return _fail(Reason.NO_PARALLAX, n, t0, parallax_deg=residual)
     E, inl = essential_ransac(ui, uj, K, config.ransac_threshold_px, config.ransac_confidence,
                               config.ransac_method)
     if E is None or inl.sum() < config.min_inliers:
         return _fail(Reason.ESSENTIAL_FAILED if E is None else Reason.TOO_FEW_INLIERS, n, t0,
                      n_inliers=int(inl.sum()))
-    parallax = rotation_only_parallax_deg(bi_all[inl], bj_all[inl])
-    if parallax < config.min_parallax_deg:
-        return _fail(Reason.NO_PARALLAX, n, t0, n_inliers=int(inl.sum()), parallax_deg=parallax)
+    residual = rotation_only_parallax_deg(bi_all[inl], bj_all[inl])
+    if residual < config.min_rotation_residual_deg:
+        return _fail(Reason.NO_PARALLAX, n, t0, n_inliers=int(inl.sum()), parallax_deg=residual)
     R, t, inl = pose_from_essential(E, ui, uj, K, inl)
     if inl.sum() < config.min_inliers:
-        return _fail(Reason.TOO_FEW_INLIERS, n, t0, n_inliers=int(inl.sum()), parallax_deg=parallax)
-    parallax = min(parallax, median_parallax_deg(R, bi_all[inl], bj_all[inl]))
+        return _fail(Reason.TOO_FEW_INLIERS, n, t0, n_inliers=int(inl.sum()), parallax_deg=residual)
+    parallax = median_parallax_deg(R, bi_all[inl], bj_all[inl])
     if parallax < config.min_parallax_deg:
         return _fail(Reason.NO_PARALLAX, n, t0, n_inliers=int(inl.sum()), parallax_deg=parallax)
     if config.refine:

@@ -103,8 +103,8 @@ class RelativePoseResult:
     n_inliers : int
         Correspondences consistent with the estimate (after the cheirality test).
     parallax_deg : float
-        Median parallax, degrees: the smaller of the median triangulation angle with the
-        estimated rotation and the median angle left by the best pure-rotation fit.
+        Median triangulation angle with the estimated rotation, degrees (when the pair
+        failed the pure-rotation test: the median angle left by the best rotation fit).
     inlier_track_ids : (M,) int64
         Track ids of the inliers (empty when no ids were given).
     timings_ms : dict
