@@ -30,6 +30,7 @@ from .information import InformationStore
 from .layout import FEATURE_DIM, POSE_DIM, StateLayout
 from .measurements import FeatureObservations, MeasurementStore, RelativePose
 from .recovery import SchurFactor, factorize
+from .incremental import IncrementalRecovery, TrackedInformationStore
 
 Array = NDArray[np.float64]
 
@@ -97,9 +98,20 @@ class InformationFilter:
     camera : PinholeCamera
         Intrinsics used by ``Zm`` (pixels are undistorted).
     config : FilterConfig
+    recovery : {"full", "incremental"}
+        What :meth:`recover_active` (the per-frame recovery) does: solve the whole system
+        (:meth:`recover`), or solve exactly an active window of recent states and
+        marginalise the rest (:mod:`eifslam.incremental`). :meth:`recover` is always the
+        full solve.
+    window : int
+        Incremental recovery only: steps without a measurement before a state leaves the
+        active window.
     """
 
-    def __init__(self, camera: PinholeCamera, config: FilterConfig | None = None) -> None:
+    def __init__(
+        self, camera: PinholeCamera, config: FilterConfig | None = None,
+        recovery: str = "full", window: int = 2,
+    ) -> None:
         self.camera = camera
         self.config = config or FilterConfig()
         self.layout = StateLayout()
@@ -108,6 +120,16 @@ class InformationFilter:
         self.priors = PriorStore()
         self._x = np.zeros(64)
         self._factor: SchurFactor | None = None
+        # -- incremental recovery hook (eifslam.incremental) --
+        if recovery not in ("full", "incremental"):
+            raise ConfigError(f"recovery must be 'full' or 'incremental', got {recovery!r}")
+        self.recovery = recovery
+        self.incremental: IncrementalRecovery | None = None
+        if recovery == "incremental":
+            self.incremental = IncrementalRecovery(window, window)
+            self.info = TrackedInformationStore()
+            self.info.listeners.append(self.incremental)
+        # -- end incremental recovery hook --
 
     # -- state ------------------------------------------------------------------------
     @property
@@ -320,6 +342,23 @@ class InformationFilter:
         if not np.all(np.isfinite(x)):
             raise EstimatorError("state recovery produced non-finite values")
         self._x[: self.dim] = x
+        return self.x
+
+    # -- incremental recovery (eifslam.incremental) -------------------------------------
+    def recover_active(self) -> Array:
+        """Per-frame recovery: exact over the active window (``recovery="incremental"``;
+        other states keep their last estimate) or :meth:`recover` (``"full"``)."""
+        if self.incremental is None:
+            return self.recover()
+        self.incremental.step(self.layout, self.info, self._x[: self.dim])
+        return self.x
+
+    def complete_estimate(self) -> Array:
+        """Incremental mode: back-substitute every marginalised state (``O(n)``), so that
+        ``x`` equals the full solve of the information as of the last
+        :meth:`recover_active`. Full mode: nothing to do."""
+        if self.incremental is not None and self.incremental.valid:
+            self.incremental.full_solution(self._x[: self.dim])
         return self.x
 
     # -- uncertainty ------------------------------------------------------------------

@@ -15,6 +15,7 @@ is set to the true distance between the first two poses.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -193,6 +194,7 @@ def run_filter(
     scene: SyntheticScene, meas: SyntheticMeasurements, filt: InformationFilter,
     scale_distance: float | None = None, min_parallax_deg: float = 1.0, recover: bool = True,
     n_frames: int | None = None, stats: RunStats | None = None,
+    on_frame: Callable[[int, InformationFilter], None] | None = None,
 ) -> InformationFilter:
     """Run Algorithm 1 on simulated measurements.
 
@@ -200,6 +202,11 @@ def run_filter(
     ``scale_distance`` (default: the true distance, so the estimate compares directly with
     the truth). A point enters the map once seen from two poses with enough parallax; its
     earlier observations are then fused too.
+
+    Each frame recovers with ``filt.recover_active()`` (the full solve unless the filter
+    was made with ``recovery="incremental"``; then the marginalised states are
+    back-substituted once at the end, so the final estimate is the full solve either
+    way). ``on_frame(k, filt)``, if given, is called after each frame, outside the timings.
     """
     cam = filt.camera
     K = len(scene.positions) if n_frames is None else n_frames
@@ -248,9 +255,13 @@ def run_filter(
         filt.fuse_features(fuse)
         t2 = time.perf_counter()
         if recover:
-            filt.recover()
+            filt.recover_active()
         t3 = time.perf_counter()
         if stats is not None:
             stats.rows.append(dict(frame=k, state_dim=filt.dim, init_ms=1e3 * (t1 - t0),
                                    fuse_ms=1e3 * (t2 - t1), recover_ms=1e3 * (t3 - t2)))
+        if on_frame is not None:
+            on_frame(k, filt)
+    if recover:
+        filt.complete_estimate()
     return filt
