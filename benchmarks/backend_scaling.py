@@ -44,10 +44,11 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+import scipy.sparse as sp  # noqa: E402
 
 from eifslam.filter import InformationFilter  # noqa: E402
 from eifslam.incremental import EntryMap  # noqa: E402
-from eifslam.recovery import factorize  # noqa: E402
+from eifslam.recovery import factorize, sparse_cholesky  # noqa: E402
 from eifslam.synthetic import RunStats, corridor_scene, run_filter, simulate  # noqa: E402
 
 
@@ -118,12 +119,20 @@ def run(scene, meas, mode: str, max_dim: int, window: int, full_every: int | Non
             I = f.information_matrix()
             pose_idx, feat_idx = f._index_sets()
             t0 = time.perf_counter()
-            x = factorize(I, pose_idx, feat_idx).solve(f.info.vector)
+            F = factorize(I, pose_idx, feat_idx)
+            x = F.solve(f.info.vector)
             dt = time.perf_counter() - t0
+            x_ref = x + F.solve(f.info.vector - I @ x)  # one step of iterative refinement
+            x_ref = x_ref + F.solve(f.info.vector - I @ x_ref)
             a = f.incremental.active_indices
-            diff = float(np.max(np.abs(x[a] - f.x[a])) / max(1.0, np.abs(x).max()))
-            samples.append(dict(frame=k, state_dim=f.dim, nnz=row["nnz"], recover_ms=1e3 * dt, max_active_diff=diff))
-            print(f"  full solve at frame {k}: n={f.dim} {1e3 * dt:.0f} ms, active diff {diff:.1e}", flush=True)
+            scale = max(1.0, np.abs(x_ref).max())
+            diff = float(np.max(np.abs(x[a] - f.x[a])) / scale)
+            samples.append(dict(frame=k, state_dim=f.dim, nnz=row["nnz"], recover_ms=1e3 * dt, max_active_diff=diff,
+                                incremental_vs_refined=float(np.max(np.abs(f.x[a] - x_ref[a])) / scale),
+                                full_vs_refined=float(np.max(np.abs(x[a] - x_ref[a])) / scale)))
+            print(f"  full solve at frame {k}: n={f.dim} {1e3 * dt:.0f} ms; active window, relative to max|x|: "
+                  f"incremental - full {diff:.1e}, incremental - refined {samples[-1]['incremental_vs_refined']:.1e}, "
+                  f"full - refined {samples[-1]['full_vs_refined']:.1e}", flush=True)
         if k % 100 == 0:
             print(f"  [{mode}] frame {k}: n={f.dim} fuse {row['fuse_ms']:.2f} ms recover {row['recover_ms']:.2f} ms "
                   f"({time.perf_counter() - t_start:.0f} s)", flush=True)
@@ -226,6 +235,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--window", type=int, default=2, help="steps before a state leaves the active window")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", default="1", help="BLAS threads (set before NumPy loads)")
+    ap.add_argument("--no-compare-solvers", dest="compare_solvers", action="store_false",
+                    help="skip timing qdldl / cholespy / SuperLU on the final matrix")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
@@ -238,19 +249,16 @@ def main(argv: list[str] | None = None) -> int:
     filt.complete_estimate()
     t_back = time.perf_counter() - t0
     I = filt.information_matrix()
-    t0 = time.perf_counter()
-    x_full = factorize(I, *filt._index_sets()).solve(filt.info.vector)
-    t_final_full = time.perf_counter() - t0
-    final_diff = float(np.max(np.abs(x_full - filt.x)) / max(1.0, np.abs(x_full).max()))
-    nnz_ok = counter.nnz == I.nnz
+    acc = accuracy(filt, I)
+    solvers = compare_solvers(filt, I, acc.pop("x_ref")) if args.compare_solvers else {}
+    solvers["incremental_back_substitution"] = dict(ms=1e3 * t_back, **acc["incremental"])
     full, _, _, _, t_full = run(scene, meas, "full", args.full_max_dim, args.window, None)
-    res = dict(frames=inc, frames_full=full, full_samples=samples)
+    res = dict(frames=inc, frames_full=full, full_samples=samples, final_accuracy=acc, solvers=solvers)
     res["checks"] = checks(inc)
     res["checks_full"] = checks(full)
     st = filt.incremental.stats
-    res["stats"] = dict(vars(st), final_state_dim=filt.dim, final_nnz=int(I.nnz), nnz_counter_matches=bool(nnz_ok),
-                        back_substitution_ms=1e3 * t_back, final_full_solve_ms=1e3 * t_final_full,
-                        final_full_vs_incremental_rel_diff=final_diff, wall_incremental_s=t_inc, wall_full_s=t_full)
+    res["stats"] = dict(vars(st), final_state_dim=filt.dim, final_nnz_summed=int(I.nnz), final_nnz_counted=counter.nnz,
+                        back_substitution_ms=1e3 * t_back, wall_incremental_s=t_inc, wall_full_s=t_full)
     res["settings"] = dict(vars(args), out=str(args.out), blas_threads=os.environ.get("OPENBLAS_NUM_THREADS"))
     (args.out / "backend_scaling.json").write_text(json.dumps(res, indent=1))
     plot(args.out / "backend_scaling.png", inc, full, samples)
@@ -258,14 +266,80 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def accuracy(filt: InformationFilter, I) -> dict:
+    """Final incremental and full-solve states against a reference refined by three
+    steps of iterative refinement with the full factor, and their residuals."""
+    i = filt.info.vector
+    F = factorize(I, *filt._index_sets())
+    x_full = F.solve(i)
+    x_ref = x_full.copy()
+    for _ in range(3):
+        x_ref = x_ref + F.solve(i - I @ x_ref)
+    out = {"x_ref": x_ref, "max_abs_x": float(np.abs(x_ref).max())}
+    for name, x in (("incremental", filt.x), ("full_superlu_schur", x_full), ("refined", x_ref)):
+        out[name] = _errors(I, i, x, x_ref)
+    return out
+
+
+def _errors(I, i, x, x_ref) -> dict:
+    return dict(max_abs_diff_to_refined=float(np.max(np.abs(x - x_ref))),
+                rel_residual=float(np.linalg.norm(I @ x - i) / np.linalg.norm(i)))
+
+
+def compare_solvers(filt: InformationFilter, I, x_ref) -> dict:
+    """Factorise + solve the final ``I`` with each available sparse solver."""
+    i = np.ascontiguousarray(filt.info.vector, dtype=float)
+    A = sp.csc_matrix(I)
+    A.sort_indices()
+
+    def superlu_schur():
+        return factorize(A, *filt._index_sets()).solve(i)
+
+    def superlu_full():
+        return sparse_cholesky(A).solve(i)
+
+    def qdldl_ldl():
+        import qdldl
+
+        return qdldl.Solver(A).solve(i)
+
+    def cholespy_cholmod():
+        import cholespy
+
+        s = cholespy.CholeskySolverD(A.shape[0], A.indptr.astype(np.int32), A.indices.astype(np.int32),
+                                     A.data.copy(), cholespy.MatrixType.CSC)
+        x = np.zeros_like(i)
+        s.solve(i.copy(), x)
+        return x
+
+    out = {}
+    for name, fn in (("superlu_schur (recovery.factorize)", superlu_schur), ("superlu_full_mmd", superlu_full),
+                     ("qdldl", qdldl_ldl), ("cholespy", cholespy_cholmod)):
+        try:
+            t0 = time.perf_counter()
+            x = fn()
+            dt = time.perf_counter() - t0
+        except ImportError as exc:
+            out[name] = {"error": str(exc)}
+            continue
+        out[name] = dict(ms=1e3 * dt, **_errors(A, i, x, x_ref))
+        print(f"  solver {name}: {1e3 * dt:.0f} ms", flush=True)
+    return out
+
+
 def summary(res: dict) -> None:
     st = res["stats"]
-    print(f"\nincremental: {len(res['frames'])} frames to n={st['final_state_dim']}, nnz={st['final_nnz']} "
-          f"(counter {'matches' if st['nnz_counter_matches'] else 'DIFFERS from'} the summed matrix)")
+    print(f"\nincremental: {len(res['frames'])} frames to n={st['final_state_dim']}, nnz={st['final_nnz_summed']} "
+          f"(block count {st['final_nnz_counted']})")
     print(f"  window at the end: {st['window_poses']} poses, {st['window_features']} features; "
           f"fallbacks {st['fallbacks']}, rebuilds {st['rebuilds']}")
-    print(f"  back substitution of the whole state: {st['back_substitution_ms']:.0f} ms; "
-          f"full solve at the end {st['final_full_solve_ms']:.0f} ms; max rel. difference {st['final_full_vs_incremental_rel_diff']:.1e}")
+    acc = res["final_accuracy"]
+    print(f"  final state vs refined reference (max |x| {acc['max_abs_x']:.0f}): incremental "
+          f"{acc['incremental']['max_abs_diff_to_refined']:.1e}, full solve {acc['full_superlu_schur']['max_abs_diff_to_refined']:.1e}")
+    for name, v in res["solvers"].items():
+        if "ms" in v:
+            print(f"  {name}: {v['ms']:.0f} ms, rel. residual {v['rel_residual']:.1e}, "
+                  f"max diff to refined {v['max_abs_diff_to_refined']:.1e}")
     for name, key in (("incremental", "checks"), ("full solve each frame", "checks_full")):
         print(f"checks ({name}):")
         for k, v in res[key].items():

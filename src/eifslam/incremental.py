@@ -175,6 +175,12 @@ class _Conditional:
             x[self.idx] = self.factor.solve(r)
 
 
+def _scatter_add(A: Array, flat: IntArray, v: Array) -> None:
+    """``A.flat[flat] += v`` (C order) with repeated indices summed."""
+    if len(v):
+        A += np.bincount(flat, v, minlength=A.size).reshape(A.shape)
+
+
 def _spd_inverse_3x3(D: Array) -> Array:
     """Inverses of ``(F, 3, 3)`` blocks; raises if a block is not positive definite."""
     try:
@@ -324,17 +330,17 @@ class IncrementalRecovery:
         fr, fc = isf[r], isf[c]
         pr, pc = self._pos[r], self._pos[c]
         m = ~fr & ~fc
-        np.add.at(self.P, (pr[m], pc[m]), v[m])
+        _scatter_add(self.P, pr[m] * self.P.shape[1] + pc[m], v[m])
         m = fr & ~fc
-        np.add.at(self.B, (pr[m], pc[m]), v[m])
+        _scatter_add(self.B, pr[m] * self.B.shape[1] + pc[m], v[m])
         m = fr & fc
         if np.any(self._map.start[r[m]] != self._map.start[c[m]]):
             raise EstimatorError("two features share a measurement: the information matrix is not of SLAM form")
-        np.add.at(self.D, (pr[m] // 3, pr[m] % 3, pc[m] % 3), v[m])
+        _scatter_add(self.D, 3 * pr[m] + pc[m] % 3, v[m])  # D[f, a, c] at 9 f + 3 a + c
         e, ev = idx.ravel(), eta.ravel()
         fe = isf[e]
-        np.add.at(self.bp, self._pos[e[~fe]], ev[~fe])
-        np.add.at(self.bf, self._pos[e[fe]], ev[fe])
+        self.bp += np.bincount(self._pos[e[~fe]], ev[~fe], minlength=len(self.bp))
+        self.bf += np.bincount(self._pos[e[fe]], ev[fe], minlength=len(self.bf))
 
     def _solve(self) -> None:
         """``x`` of the window: Schur complement onto the poses, dense Cholesky."""
