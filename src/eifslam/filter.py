@@ -59,6 +59,11 @@ class FilterConfig:
         fuses everything.
     min_depth : float
         Reject a ``Zm`` whose predicted depth is below this (state units).
+    weak_prior_sigma : float
+        Standard deviation of a weak prior put on every new pose position and feature at
+        its initial guess, so that a state whose measurements were all rejected (gate,
+        depth) never makes ``I`` singular. Its information, ``1e-6`` by default, is
+        negligible next to any measurement's; it touches diagonal blocks only.
     """
 
     prior_sigma: float = 1e-6
@@ -68,9 +73,10 @@ class FilterConfig:
     zt_paper_max_angle_deg: float = 60.0
     gate_chi2: float | None = None
     min_depth: float = 1e-6
+    weak_prior_sigma: float = 1e3
 
     def __post_init__(self) -> None:
-        for key in ("prior_sigma", "scale_prior_sigma", "quat_norm_sigma", "min_depth"):
+        for key in ("prior_sigma", "scale_prior_sigma", "quat_norm_sigma", "min_depth", "weak_prior_sigma"):
             v = getattr(self, key)
             if not (np.isfinite(v) and v > 0):
                 raise ConfigError(f"filter.{key} must be a positive number, got {v!r}")
@@ -88,6 +94,7 @@ class PriorStore:
 
     pose: dict[int, tuple[Array, Array]] = field(default_factory=dict)  # fid -> (p, q)
     scale: tuple[int, int, float] | None = None  # (fid_a, fid_b, distance)
+    weak: dict[tuple[str, int], Array] = field(default_factory=dict)  # weak priors at initial guesses
 
 
 class InformationFilter:
@@ -160,6 +167,8 @@ class InformationFilter:
         self._x[off : off + 3], self._x[off + 3 : off + 7] = p, q
         self._factor = None
         self._fuse_quat_norm(np.array([frame_id]))
+        self.priors.weak[("pose", int(frame_id))] = p.copy()
+        self._fuse_weak(self.layout.pose_columns([frame_id])[:, :3], p[None])
 
     def add_features(self, track_ids, X: Array) -> None:
         """Augment the state with features ``X`` (N, 3), world frame."""
@@ -170,7 +179,25 @@ class InformationFilter:
             off = self.layout.add_feature(tid)
             self._grow()
             self._x[off : off + 3] = xyz
+            self.priors.weak[("feature", int(tid))] = xyz.copy()
         self._factor = None
+        if len(X):
+            self._fuse_weak(self.layout.feature_columns(list(track_ids)), X)
+
+    def _fuse_weak(self, cols, X: Array) -> None:
+        """Weak prior ``X ~ N(X0, weak_prior_sigma^2 I)`` on positions ``cols`` (N, 3)."""
+        w = 1.0 / self.config.weak_prior_sigma**2
+        self.info.add(cols, np.broadcast_to(w * np.eye(3), (len(cols), 3, 3)).copy(), w * X)
+        self._factor = None
+
+    def refuse_weak_priors(self) -> None:
+        """Fuse every weak prior again (smoothing starts from zero information)."""
+        keys = list(self.priors.weak)
+        if not keys:
+            return
+        cols = np.stack([self.layout.pose_columns([i])[0, :3] if kind == "pose" else self.layout.feature_columns([i])[0]
+                         for kind, i in keys])
+        self._fuse_weak(cols, np.stack([self.priors.weak[k] for k in keys]))
 
     def pose(self, frame_id: int) -> tuple[Array, Array]:
         """Estimated ``(p (3,), q_wc (4,) unit)`` of a pose."""

@@ -29,6 +29,7 @@ from .filter import InformationFilter
 from .frontend import FrontEnd
 from .frontend.results import RelativePoseResult
 from .initialisation import pose_from_relative, triangulate
+from .localisation import localise_pose
 from .measurements import FeatureObservations
 from .smoothing import SmoothingReport, recover_scale, smooth
 
@@ -141,12 +142,24 @@ class Slam:
             res = TrackResult(k, ts, TrackingState.INITIALISING, np.zeros(3), np.array([1.0, 0, 0, 0]),
                               reason="first frame: world frame", timings_ms=timings)
             return self._finish(res, t0)
-        rp, tried = self._find_reference(k, timings)
-        if rp is None:
-            reason = tried.reason if tried is not None else "no known pose to relate to"
-            return self._finish(TrackResult(k, ts, self._lost_state(), reason=f"lost: {reason}", timings_ms=timings), t0)
         try:
-            self._localise_and_fuse(k, rp, timings)
+            rp, tried = self._find_reference(k, timings, relocalise=False)
+            if rp is not None:
+                self._localise_and_fuse(k, rp, timings)
+            elif self._localise_from_map(k, timings):
+                p, q = self.filter.pose(k)
+                res = TrackResult(k, ts, TrackingState.TRACKING, p, q, self.filter.pose_covariance(k),
+                                  reason="localised from map features (no baseline to a known pose)",
+                                  timings_ms=timings)
+                return self._finish(res, t0)
+            else:
+                rp, tried2 = self._find_reference(k, timings, relocalise=True)
+                tried = tried2 or tried
+                if rp is None:
+                    reason = tried.reason if tried is not None else "no known pose to relate to"
+                    return self._finish(TrackResult(k, ts, self._lost_state(), reason=f"lost: {reason}",
+                                                    timings_ms=timings), t0)
+                self._localise_and_fuse(k, rp, timings)
         except EstimatorError as exc:  # keep the run alive; the frame counts as lost
             return self._finish(TrackResult(k, ts, self._lost_state(), reason=f"lost: {exc}", timings_ms=timings), t0)
         p, q = self.filter.pose(k)
@@ -164,30 +177,60 @@ class Slam:
         self.results.append(res)
         return res
 
-    def _find_reference(self, k: int, timings: dict) -> tuple[RelativePoseResult | None, RelativePoseResult | None]:
-        """Try recent known poses, then older ones after relocalisation (III-C, III-F)."""
+    def _find_reference(self, k: int, timings: dict, relocalise: bool) -> tuple[RelativePoseResult | None, RelativePoseResult | None]:
+        """A known pose related to frame *k* by ``ZR``/``ZT`` (III-C, III-F).
+
+        Without ``relocalise``: the most recent known poses, then a few further back (a
+        larger baseline when the camera moves slowly). With ``relocalise``: older poses,
+        after matching the frame against them (tracking lost).
+        """
         sysc = self.config.system
         known = self.filter.layout.pose_ids[::-1]
+        n = sysc.reference_candidates
+        if relocalise:
+            older = known[n : n + sysc.relocalise_candidates]
+            if not older:
+                return None, None
+            matches = self.frontend.relocalise(k, older)
+            group = [c for c, m in sorted(matches, key=lambda cm: -cm[1]) if m > 0][:5]
+        else:
+            group = known[:n] + [known[i] for i in (2 * n, 4 * n) if i < len(known)]
         last = None
-        t_rp = t_cov = 0.0
-        recent = known[: sysc.reference_candidates]
-        older = known[sysc.reference_candidates : sysc.reference_candidates + sysc.relocalise_candidates]
-        for group, reloc in ((recent, False), (older, True)):
-            if not group:
-                continue
-            if reloc:
-                matches = self.frontend.relocalise(k, group)
-                group = [c for c, n in sorted(matches, key=lambda cn: -cn[1]) if n > 0][:5]
-            for c in group:
-                r = self.frontend.relative_pose(c, k)
-                t_rp += r.timings_ms.get("relative_pose", 0.0)
-                t_cov += r.timings_ms.get("covariance", 0.0)
-                last = r
-                if r.ok:
-                    timings["relative_pose"], timings["covariance"] = t_rp, t_cov
-                    return r, r
-        timings["relative_pose"], timings["covariance"] = t_rp, t_cov
+        for c in group:
+            r = self.frontend.relative_pose(c, k)
+            timings["relative_pose"] = timings.get("relative_pose", 0.0) + r.timings_ms.get("relative_pose", 0.0)
+            timings["covariance"] = timings.get("covariance", 0.0) + r.timings_ms.get("covariance", 0.0)
+            last = r
+            if r.ok:
+                return r, r
         return None, last
+
+    def _localise_from_map(self, k: int, timings: dict) -> bool:
+        """Add frame *k* from ``Zm`` of known map features alone (no usable baseline)."""
+        filt = self.filter
+        if filt.layout.n_poses < 2 or filt.layout.n_features == 0:
+            return False
+        t0 = time.perf_counter()
+        ids, uv = self.frontend.map_observations(k)
+        known = filt.layout.has_features(ids)
+        if known.sum() < 12:
+            return False
+        X = filt.x[filt.layout.feature_columns(ids[known])]
+        p0, q0 = filt.pose(filt.layout.pose_ids[-1])
+        sol = localise_pose(self.camera, p0, q0, X, uv[known])
+        if sol is None:
+            return False
+        p, q, _ = sol
+        filt.add_pose(k, p, q)
+        ids, uv = self._record_map_observations(k)
+        batch = self._new_features(k, ids, uv)
+        t1 = time.perf_counter()
+        filt.fuse_features(batch)
+        t2 = time.perf_counter()
+        filt.recover()
+        t3 = time.perf_counter()
+        timings.update(init=1e3 * (t1 - t0), fuse=1e3 * (t2 - t1), recover=1e3 * (t3 - t2))
+        return True
 
     def _record_map_observations(self, k: int) -> tuple[NDArray[np.int64], Array]:
         ids, uv = self.frontend.map_observations(k)
@@ -241,7 +284,7 @@ class Slam:
             j, v = hist[0]
             p_j, q_j = filt.pose(j)
             X, par, ok = triangulate(p_j, q_j, v[None], p_k, q_k, u[None], self.camera)
-            if not (ok[0] and par[0] >= sysc.min_feature_parallax_deg):
+            if not (ok[0] and par[0] >= sysc.feature_parallax_deg):
                 continue
             new_ids.append(t)
             new_X.append(X[0])

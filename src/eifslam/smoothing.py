@@ -45,6 +45,7 @@ def relinearise(filt: InformationFilter) -> None:
         filt._fuse_pose_prior(fid, p, q)
     if filt.priors.scale is not None:
         filt._fuse_scale(*filt.priors.scale)
+    filt.refuse_weak_priors()
     pids = filt.layout.pose_ids
     if pids:
         filt._fuse_quat_norm(np.array(pids))
@@ -104,6 +105,7 @@ def rescale(filt: InformationFilter, s: float) -> None:
         a, b, dist = filt.priors.scale
         filt.priors.scale = (a, b, dist * s)
     filt.priors.pose = {k: (p * s, q) for k, (p, q) in filt.priors.pose.items()}
+    filt.priors.weak = {k: v * s for k, v in filt.priors.weak.items()}
     filt._factor = None
 
 

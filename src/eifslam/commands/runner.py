@@ -45,7 +45,11 @@ def run_sequence(seq, config: SlamConfig, out_dir: Path, max_frames: int | None 
     if stopped:
         print(f"eifslam: {stopped}; writing what was estimated so far", file=sys.stderr)
     if config.system.mode == "smooth" and slam.filter.layout.n_poses >= 2:
-        slam.smooth()
+        try:
+            slam.smooth()
+        except EifslamError as exc:  # keep the filter's estimate rather than lose the run
+            stopped = (stopped + "; " if stopped else "") + f"smoothing failed: {exc}"
+            print(f"eifslam: smoothing failed ({exc}); writing the filter's estimate", file=sys.stderr)
     if scale is not None and slam.filter.layout.n_poses >= 2:
         a, b, length = scale
         slam.set_scale(a, b, length)
