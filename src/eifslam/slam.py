@@ -316,13 +316,16 @@ class Slam:
     def save(self, path: str | Path) -> None:
         """Save the whole session (filter, front end, results) to a file."""
         fe = self.frontend
-        detector, matcher = fe._detector, fe._matcher
+        detector, matcher, factor = fe._detector, fe._matcher, self.filter._factor
         fe._detector = fe._matcher = None
+        self.filter._factor = None  # the factorisation is rebuilt on demand
         try:
             with open(path, "wb") as fh:
                 pickle.dump({"version": 1, "slam": self}, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        except (OSError, TypeError, pickle.PicklingError) as exc:
+            raise EifslamError(f"cannot save session to {path}: {exc}") from exc
         finally:
-            fe._detector, fe._matcher = detector, matcher
+            fe._detector, fe._matcher, self.filter._factor = detector, matcher, factor
 
     @staticmethod
     def load(path: str | Path) -> "Slam":

@@ -1,0 +1,152 @@
+"""The SLAM system end to end: configuration, degenerate input, sessions, the built-in scene,
+real data, and the command line's handling of bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from eifslam.cli import main as cli_main
+from eifslam.config import SlamConfig
+from eifslam.errors import ConfigError, ImageError
+from eifslam.slam import Slam, TrackingState
+
+DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
+
+
+def test_config_rejects_unknown_keys_and_bad_values():
+    with pytest.raises(ConfigError, match="system.nonsense"):
+        SlamConfig.from_dict({"system": {"nonsense": 1}})
+    with pytest.raises(ConfigError, match="mode"):
+        SlamConfig.from_dict({"system": {"mode": "fast"}})
+    with pytest.raises(ConfigError, match="map_fraction"):
+        SlamConfig.from_dict({"frontend": {"map_fraction": 1.5}})
+    with pytest.raises(ConfigError, match="section"):
+        SlamConfig.from_dict({"backend": {}})
+    cfg = SlamConfig.from_dict({"system": {"mode": "filter"}})
+    assert cfg.system.feature_parallax_deg == 3.0 and SlamConfig().system.feature_parallax_deg == 1.5
+
+
+@pytest.fixture(scope="module")
+def scene_run():
+    from eifslam.scene import make_scene, render_frame
+
+    scene = make_scene(n_frames=54)
+    slam = Slam(scene.camera)
+    idx = list(range(0, 10))
+    results = [slam.track(render_frame(scene, k), float(scene.timestamps[k])) for k in idx]
+    return scene, slam, idx, results
+
+
+def test_builtin_scene_tracks_every_frame_with_small_error(scene_run):
+    from eifslam.evaluation import evaluate
+    from eifslam.io import Trajectory
+
+    scene, slam, idx, results = scene_run
+    assert all(r.position is not None for r in results)
+    assert results[0].state is TrackingState.INITIALISING
+    assert all(r.state is TrackingState.TRACKING for r in results[1:])
+    for r in results[1:]:
+        assert r.covariance.shape == (6, 6) and np.all(np.linalg.eigvalsh(r.covariance) > 0)
+    t, P, Q = slam.trajectory()
+    gt = Trajectory(scene.timestamps[idx], scene.positions[idx], scene.quats_wxyz[idx])
+    ate = evaluate(Trajectory(t, P, Q), gt).ate_rmse
+    assert 1e-6 < ate < 0.01  # metres; the path is ~1 m long
+    ids, X, cols = slam.map()
+    assert len(ids) > 200 and X.shape == (len(ids), 3) and cols.dtype == np.uint8
+
+
+def test_black_frame_is_lost_not_a_crash_and_tracking_resumes(scene_run, tmp_path):
+    from eifslam.scene import render_frame
+
+    scene, slam, idx, _ = scene_run
+    r = slam.track(np.zeros((scene.camera.height, scene.camera.width, 3), np.uint8), 99.0)
+    assert r.state is TrackingState.LOST and r.position is None and r.reason
+    assert np.all(np.isfinite(slam.filter.x))
+    r2 = slam.track(render_frame(scene, 10), float(scene.timestamps[10]))
+    assert r2.state is TrackingState.TRACKING
+    # sessions: save and load give the same estimate and keep tracking
+    path = tmp_path / "session.pkl"
+    slam.save(path)
+    back = Slam.load(path)
+    np.testing.assert_array_equal(back.filter.x, slam.filter.x)
+    r3 = back.track(render_frame(scene, 11), float(scene.timestamps[11]))
+    assert r3.state is TrackingState.TRACKING
+
+
+def test_bad_image_raises_image_error():
+    from eifslam.camera import PinholeCamera
+
+    slam = Slam(PinholeCamera(500, 500, 319.5, 239.5, 640, 480))
+    with pytest.raises(ImageError):
+        slam.track(np.zeros((10, 10)), 0.0)
+
+
+def test_repeated_frame_is_not_fused_as_a_baseline(scene_run):
+    from eifslam.scene import make_scene, render_frame
+
+    scene = make_scene(n_frames=54)
+    slam = Slam(scene.camera)
+    img = render_frame(scene, 0)
+    slam.track(img, 0.0)
+    r = slam.track(img.copy(), 1.0)
+    assert r.state is TrackingState.INITIALISING and "parallax" in r.reason
+    assert slam.filter.layout.n_poses == 1
+
+
+@pytest.mark.skipif(not (DATASETS / "kitti-seq1").is_dir(), reason="../shared/datasets/kitti-seq1 is absent")
+def test_kitti_first_frames_against_ground_truth():
+    from eifslam.evaluation import evaluate
+    from eifslam.io import Trajectory, open_source
+
+    seq = open_source(DATASETS / "kitti-seq1")
+    slam = Slam(seq.camera)
+    n = 12
+    res = [slam.track(seq.load(k), seq.frames[k].timestamp) for k in range(n)]
+    assert sum(r.position is not None for r in res) == n
+    slam.smooth()
+    t, P, Q = slam.trajectory()
+    ev = evaluate(Trajectory(t, P, Q), seq.ground_truth())
+    assert 1e-4 < ev.ate_rmse < 0.1  # metres over ~13 m of road
+    assert ev.tracked_fraction > 0.2
+
+
+def _tiny_folder(tmp_path: Path, n: int = 3) -> Path:
+    import cv2
+    from eifslam.scene import make_scene, render_frame
+
+    scene = make_scene(n_frames=54, width=320, height=240)
+    d = tmp_path / "data"
+    (d / "images").mkdir(parents=True)
+    for k in range(n):
+        cv2.imwrite(str(d / "images" / f"{k:06d}.png"), render_frame(scene, k))
+    c = scene.camera
+    (d / "camera.yaml").write_text(
+        f"model: pinhole\nwidth: {c.width}\nheight: {c.height}\nfx: {c.fx}\nfy: {c.fy}\ncx: {c.cx}\ncy: {c.cy}\n"
+        "distortion: [0, 0, 0, 0, 0]\n")
+    return d
+
+
+def test_cli_run_writes_outputs_and_survives_a_corrupt_image(tmp_path, capsys):
+    d = _tiny_folder(tmp_path, 4)
+    (d / "images" / "000002.png").write_bytes(b"not a png")
+    out = tmp_path / "out"
+    rc = cli_main(["run", str(d), "--out", str(out), "--no-html"])
+    assert rc == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["frames"] == 3 and rep["frames_tracked"] >= 1
+    assert (out / "trajectory.tum").exists() and (out / "map.ply").exists()
+    assert "000002.png" in capsys.readouterr().err
+
+
+def test_cli_bad_calibration_is_one_line(tmp_path, capsys):
+    d = _tiny_folder(tmp_path, 1)
+    (d / "camera.yaml").write_text("model: pinhole\nwidth: 320\nheight: 240\nfx: -5\nfy: 1\ncx: 1\ncy: 1\n")
+    rc = cli_main(["run", str(d), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1 and len(err) == 1 and "camera.yaml" in err[0]
+    rc = cli_main(["run", str(tmp_path / "missing"), "--out", str(tmp_path / "o")])
+    assert rc == 1
