@@ -399,6 +399,7 @@ class IncrementalRecovery:
             self.pidx, self.xp, self.B = kidx, self.xp[k], self.B[:, k]
             self._pos[self.pidx] = np.arange(len(self.pidx))
             self.stats.marginalised_poses += int(pstale.sum())
+        self.P = 0.5 * (self.P + self.P.T)  # keep the rounding of the Schur updates symmetric
 
     # -- rebuild from the full information --------------------------------------------------
     def _rebuild(self, info: InformationStore, s: int) -> None:
