@@ -167,8 +167,8 @@ class InformationFilter:
         self._x[off : off + 3], self._x[off + 3 : off + 7] = p, q
         self._factor = None
         self._fuse_quat_norm(np.array([frame_id]))
-        self.priors.weak[("pose", int(frame_id))] = p.copy()
-        self._fuse_weak(self.layout.pose_columns([frame_id])[:, :3], p[None])
+        self.priors.weak[("pose", int(frame_id))] = np.concatenate([p, q])
+        self._fuse_weak(self.layout.pose_columns([frame_id]), np.concatenate([p, q])[None])
 
     def add_features(self, track_ids, X: Array) -> None:
         """Augment the state with features ``X`` (N, 3), world frame."""
@@ -185,19 +185,18 @@ class InformationFilter:
             self._fuse_weak(self.layout.feature_columns(list(track_ids)), X)
 
     def _fuse_weak(self, cols, X: Array) -> None:
-        """Weak prior ``X ~ N(X0, weak_prior_sigma^2 I)`` on positions ``cols`` (N, 3)."""
+        """Weak prior ``X ~ N(X0, weak_prior_sigma^2 I)`` on state entries ``cols`` (N, k)."""
         w = 1.0 / self.config.weak_prior_sigma**2
-        self.info.add(cols, np.broadcast_to(w * np.eye(3), (len(cols), 3, 3)).copy(), w * X)
+        k = cols.shape[1]
+        self.info.add(cols, np.broadcast_to(w * np.eye(k), (len(cols), k, k)).copy(), w * X)
         self._factor = None
 
     def refuse_weak_priors(self) -> None:
         """Fuse every weak prior again (smoothing starts from zero information)."""
-        keys = list(self.priors.weak)
-        if not keys:
-            return
-        cols = np.stack([self.layout.pose_columns([i])[0, :3] if kind == "pose" else self.layout.feature_columns([i])[0]
-                         for kind, i in keys])
-        self._fuse_weak(cols, np.stack([self.priors.weak[k] for k in keys]))
+        for kind, columns in (("pose", self.layout.pose_columns), ("feature", self.layout.feature_columns)):
+            keys = [i for (kd, i) in self.priors.weak if kd == kind]
+            if keys:
+                self._fuse_weak(columns(keys), np.stack([self.priors.weak[(kind, i)] for i in keys]))
 
     def pose(self, frame_id: int) -> tuple[Array, Array]:
         """Estimated ``(p (3,), q_wc (4,) unit)`` of a pose."""

@@ -105,7 +105,8 @@ def rescale(filt: InformationFilter, s: float) -> None:
         a, b, dist = filt.priors.scale
         filt.priors.scale = (a, b, dist * s)
     filt.priors.pose = {k: (p * s, q) for k, (p, q) in filt.priors.pose.items()}
-    filt.priors.weak = {k: v * s for k, v in filt.priors.weak.items()}
+    filt.priors.weak = {k: (v * s if k[0] == "feature" else np.concatenate([v[:3] * s, v[3:]]))
+                        for k, v in filt.priors.weak.items()}
     filt._factor = None
 
 
