@@ -82,7 +82,7 @@ class BAConfig:
     xtol: float = 1e-10
     gtol: float = 1e-10
     min_parallax_deg: float = 0.5
-    max_initial_px: float = 5.0
+    max_initial_px: float = 3.0
 
     def __post_init__(self) -> None:
         for key in ("robust_px", "ftol", "xtol", "gtol", "max_initial_px"):

@@ -22,8 +22,9 @@ class SystemConfig:
 
     Attributes
     ----------
-    mode : {"filter", "smooth"}
-        Filter only, or filter + relinearise + smooth at the end of a run.
+    mode : {"filter", "smooth", "ba"}
+        Filter only, or filter + relinearise + smooth at the end of a run, or filter +
+        full bundle adjustment of every track (:mod:`eifslam.bundle_adjustment`).
     smooth_passes : int
         At most this many relinearisation passes when smoothing (paper: one is enough).
     reference_candidates : int
@@ -50,8 +51,8 @@ class SystemConfig:
     scale_distance: float = 1.0
 
     def __post_init__(self) -> None:
-        if self.mode not in ("filter", "smooth"):
-            raise ConfigError(f"system.mode must be 'filter' or 'smooth', got {self.mode!r}")
+        if self.mode not in ("filter", "smooth", "ba"):
+            raise ConfigError(f"system.mode must be 'filter', 'smooth' or 'ba', got {self.mode!r}")
         for key in ("smooth_passes", "reference_candidates"):
             if int(getattr(self, key)) < 1:
                 raise ConfigError(f"system.{key} must be at least 1")

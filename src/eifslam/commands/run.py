@@ -13,8 +13,8 @@ from ..errors import ConfigError, EifslamError
 def add_common_options(p: argparse.ArgumentParser) -> None:
     """Options shared by ``run`` and ``demo``."""
     p.add_argument("--out", required=True, type=Path, help="output folder")
-    p.add_argument("--mode", choices=["filter", "smooth"], default="smooth",
-                   help="filter only, or filter + relinearise + smooth (default)")
+    p.add_argument("--mode", choices=["filter", "smooth", "ba"], default="smooth",
+                   help="filter only, filter + relinearise + smooth (default), or filter + full bundle adjustment")
     p.add_argument("--features", choices=["sift", "orb", "akaze", "surf"], default="sift", help="feature detector")
     p.add_argument("--map-fraction", type=float, default=0.3, help="fraction of tracks kept in the map (Ωm)")
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames")

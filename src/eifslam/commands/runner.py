@@ -50,6 +50,14 @@ def run_sequence(seq, config: SlamConfig, out_dir: Path, max_frames: int | None 
         except EifslamError as exc:  # keep the filter's estimate rather than lose the run
             stopped = (stopped + "; " if stopped else "") + f"smoothing failed: {exc}"
             print(f"eifslam: smoothing failed ({exc}); writing the filter's estimate", file=sys.stderr)
+    if config.system.mode == "ba" and slam.filter.layout.n_poses >= 2:
+        from ..bundle_adjustment import bundle_adjust_slam
+
+        try:
+            extra = dict(extra or {}, ba=bundle_adjust_slam(slam).summary())
+        except EifslamError as exc:  # keep the filter's estimate rather than lose the run
+            stopped = (stopped + "; " if stopped else "") + f"bundle adjustment failed: {exc}"
+            print(f"eifslam: bundle adjustment failed ({exc}); writing the filter's estimate", file=sys.stderr)
     if scale is not None and slam.filter.layout.n_poses >= 2:
         a, b, length = scale
         slam.set_scale(a, b, length)
