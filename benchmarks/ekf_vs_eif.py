@@ -1,0 +1,112 @@
+"""Per-frame back-end cost of the exactly sparse EIF against a dense EKF (MonoSLAM-style).
+
+The same synthetic corridor exploration (:func:`eifslam.synthetic.corridor_scene` +
+:func:`eifslam.synthetic.simulate`) runs through
+
+* the EIF with incremental recovery (paper III-G), and with the full solve, and
+* :class:`eifslam.ekf.DenseEKF` (same measurements, same linearisation, dense covariance),
+
+timing each frame's back end: EIF = fuse + recover, EKF = linearise + covariance update.
+The EKF stops after the first frame whose update exceeds ``--ekf-budget-s``.
+
+Writes ``DIR/ekf_vs_eif.json`` (``{"eif": [{"frame", "state_dim", "ms"}...], "eif_full":
+[...], "ekf": [...], "ekf_stopped_at_state_dim": n}``) and ``DIR/ekf_vs_eif.png``.
+
+    python benchmarks/ekf_vs_eif.py --out /tmp/ekf_vs_eif
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from eifslam import synthetic
+from eifslam.ekf import DenseEKF
+from eifslam.filter import InformationFilter
+
+
+class _Budget(Exception):
+    pass
+
+
+def _rows(stats: synthetic.RunStats) -> list[dict]:
+    return [dict(frame=r["frame"], state_dim=r["state_dim"], ms=round(r["fuse_ms"] + r["recover_ms"], 3))
+            for r in stats.rows]
+
+
+def run(n_frames: int, seed: int, budget_s: float) -> dict:
+    """Run the three back ends on one simulated corridor; return the JSON dict."""
+    rng = np.random.default_rng(seed)
+    scene = synthetic.corridor_scene(n_frames, rng)
+    meas = synthetic.simulate(scene, rng)
+    out: dict = {"n_frames": n_frames, "seed": seed, "ekf_budget_s": budget_s}
+    for key, recovery in (("eif", "incremental"), ("eif_full", "full")):
+        st = synthetic.RunStats()
+        synthetic.run_filter(scene, meas, InformationFilter(scene.camera, recovery=recovery), stats=st)
+        out[key] = _rows(st)
+    st = synthetic.RunStats()
+
+    def check(k: int, filt) -> None:
+        r = st.rows[-1]
+        if (r["fuse_ms"] + r["recover_ms"]) > 1e3 * budget_s:
+            raise _Budget
+
+    stopped = None
+    try:
+        synthetic.run_filter(scene, meas, DenseEKF(scene.camera), stats=st, on_frame=check)
+    except _Budget:
+        stopped = st.rows[-1]["state_dim"]
+    out["ekf"] = _rows(st)
+    out["ekf_stopped_at_state_dim"] = stopped
+    return out
+
+
+def plot(res: dict, ax) -> None:
+    """Per-frame back-end milliseconds against state dimension on ``ax``."""
+    for key, label, style in (("ekf", "dense EKF (covariance update)", "o-"),
+                              ("eif_full", "EIF, full recovery", "s-"),
+                              ("eif", "EIF, incremental recovery", "^-")):
+        rows = res[key]
+        ax.plot([r["state_dim"] for r in rows], [r["ms"] for r in rows], style, ms=3, label=label)
+    if res.get("ekf_stopped_at_state_dim"):
+        ax.axvline(res["ekf_stopped_at_state_dim"], color="0.5", ls=":", label="EKF stopped")
+    ax.set_xlabel("state dimension")
+    ax.set_ylabel("back-end ms per frame (fuse + recover / update)")
+    ax.set_yscale("log")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--frames", type=int, default=80)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--ekf-budget-s", type=float, default=2.0)
+    args = ap.parse_args()
+    res = run(args.frames, args.seed, args.ekf_budget_s)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "ekf_vs_eif.json").write_text(json.dumps(res, indent=1))
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    plot(res, ax)
+    fig.tight_layout()
+    fig.savefig(args.out / "ekf_vs_eif.png", dpi=120)
+    for key in ("eif", "eif_full", "ekf"):
+        rows = res[key]
+        if rows:
+            print(f"{key}: {len(rows)} frames, last state_dim {rows[-1]['state_dim']}, "
+                  f"median {np.median([r['ms'] for r in rows]):.1f} ms, last {rows[-1]['ms']:.1f} ms")
+    print(f"EKF stopped at state dim: {res['ekf_stopped_at_state_dim']}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

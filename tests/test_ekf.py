@@ -1,0 +1,38 @@
+"""The dense EKF agrees with the EIF when both see the same measurements, linearised alike."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from eifslam import synthetic
+from eifslam.ekf import DenseEKF
+from eifslam.filter import InformationFilter
+
+
+def test_ekf_estimate_and_covariance_agree_with_eif():
+    rng = np.random.default_rng(1)
+    sc = synthetic.corridor_scene(8, rng, points_per_metre=10)
+    meas = synthetic.simulate(sc, rng, sigma_px=0.5)
+    eif = synthetic.run_filter(sc, meas, InformationFilter(sc.camera))
+    ekf = synthetic.run_filter(sc, meas, DenseEKF(sc.camera))
+    assert ekf.dim == eif.dim > 200
+    _, P1, Q1 = eif.poses()
+    _, P2, Q2 = ekf.poses()
+    err_truth = np.abs(P1 - sc.positions).max()
+    assert 1e-3 < err_truth < 0.1  # noise was applied
+    assert np.abs(P1 - P2).max() < 1e-2 * err_truth
+    assert np.abs(Q1 - Q2).max() < 1e-5
+    assert np.abs(eif.features()[1] - ekf.features()[1]).max() < 1e-2
+    C1, C2 = eif.pose_covariance(7), ekf.pose_covariance(7)
+    assert np.allclose(np.diag(C1), np.diag(C2), rtol=1e-2)
+
+
+def test_ekf_update_reduces_only_the_touched_uncertainty():
+    rng = np.random.default_rng(2)
+    sc = synthetic.corridor_scene(3, rng, points_per_metre=5)
+    meas = synthetic.simulate(sc, rng, noise=False)
+    ekf = synthetic.run_filter(sc, meas, DenseEKF(sc.camera))
+    assert np.allclose(ekf.P, ekf.P.T)
+    assert np.all(np.linalg.eigvalsh(ekf.P) > -1e-9 * np.abs(ekf.P).max())
+    _, P, _ = ekf.poses()
+    assert np.abs(P - sc.positions).max() < 1e-6
