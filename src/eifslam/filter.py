@@ -273,6 +273,29 @@ class InformationFilter:
         self.info.add(idx, Lam, eta)
         self._factor = None
 
+    def linearise_features(self, obs: FeatureObservations):
+        """Linearise ``Zm`` at the current estimate.
+
+        Returns
+        -------
+        ok : (N,) bool, usable (predicted depth above ``min_depth``, finite, inside the gate).
+        idx : (N, 10) state indices ``[pose 7, feature 3]``; J : (N, 2, 10);
+        W : (N, 2, 2) information; innov : (N, 2) ``z - h(x)``; chi2 : (N,) normalised
+        innovation squared (``inf`` where not finite or behind the camera).
+        """
+        pc = self.layout.pose_columns(obs.pose)
+        fc = self.layout.feature_columns(obs.feature)
+        x, c = self.x, self.camera
+        h, Jp, Jf, depth = models.feature_model(x[pc[:, :3]], x[pc[:, 3:]], x[fc], c.fx, c.fy, c.cx, c.cy)
+        innov = obs.uv - h
+        chi2 = np.sum(innov**2, 1) / obs.sigma_px**2
+        ok = (depth > self.config.min_depth) & np.isfinite(chi2)
+        chi2 = np.where(ok, chi2, np.inf)
+        if self.config.gate_chi2 is not None:
+            ok &= chi2 <= self.config.gate_chi2
+        W = np.eye(2)[None] / (obs.sigma_px**2)[:, None, None]
+        return ok, np.concatenate([pc, fc], 1), np.concatenate([Jp, Jf], 2), W, innov, chi2
+
     def fuse_features(self, obs: FeatureObservations, store: bool = True) -> FeatureObservations:
         """Fuse a batch of ``Zm``; return the measurements actually fused.
 
@@ -281,19 +304,10 @@ class InformationFilter:
         """
         if len(obs) == 0:
             return obs
-        pc = self.layout.pose_columns(obs.pose)
-        fc = self.layout.feature_columns(obs.feature)
-        x = self.x
-        c = self.camera
-        h, Jp, Jf, depth = models.feature_model(x[pc[:, :3]], x[pc[:, 3:]], x[fc], c.fx, c.fy, c.cx, c.cy)
-        innov = obs.uv - h
-        ok = (depth > self.config.min_depth) & np.all(np.isfinite(innov), 1)
-        if self.config.gate_chi2 is not None:
-            ok &= np.sum(innov**2, 1) / obs.sigma_px**2 <= self.config.gate_chi2
+        ok, idx, J, W, innov, _ = self.linearise_features(obs)
         if not np.all(ok):
-            obs, pc, fc, Jp, Jf, innov = obs.subset(ok), pc[ok], fc[ok], Jp[ok], Jf[ok], innov[ok]
-        W = np.eye(2)[None] / (obs.sigma_px**2)[:, None, None]
-        self._add_linearised(np.concatenate([pc, fc], 1), np.concatenate([Jp, Jf], 2), W, innov)
+            obs, idx, J, W, innov = obs.subset(ok), idx[ok], J[ok], W[ok], innov[ok]
+        self._add_linearised(idx, J, W, innov)
         if store and len(obs):
             self.store.features.append(obs)
         return obs
@@ -306,10 +320,14 @@ class InformationFilter:
             return np.zeros(len(t), bool)
         return t[:, 2] >= np.cos(np.radians(self.config.zt_paper_max_angle_deg))
 
-    def fuse_relative(self, rps: list[RelativePose], store: bool = True) -> None:
-        """Fuse ``ZR`` and ``ZT`` of each relative pose jointly (5x5 covariance)."""
-        if not rps:
-            return
+    def linearise_relative(self, rps: list[RelativePose]):
+        """Linearise ``ZR`` and ``ZT`` jointly at the current estimate.
+
+        Returns
+        -------
+        idx : (N, 14) state indices ``[pose i, pose j]``; J : (N, 5, 14);
+        W : (N, 5, 5) information of the joint measurement; innov : (N, 5).
+        """
         ci = self.layout.pose_columns([r.i for r in rps])
         cj = self.layout.pose_columns([r.j for r in rps])
         qm = np.stack([r.q_ij for r in rps])
@@ -337,7 +355,13 @@ class InformationFilter:
         W = np.linalg.inv(Q)
         if not np.all(np.isfinite(W)) or not np.all(np.isfinite(innov)):
             raise EstimatorError("relative pose measurement produced a non-finite information")
-        self._add_linearised(np.concatenate([ci, cj], 1), J, 0.5 * (W + np.swapaxes(W, 1, 2)), innov)
+        return np.concatenate([ci, cj], 1), J, 0.5 * (W + np.swapaxes(W, 1, 2)), innov
+
+    def fuse_relative(self, rps: list[RelativePose], store: bool = True) -> None:
+        """Fuse ``ZR`` and ``ZT`` of each relative pose jointly (5x5 covariance)."""
+        if not rps:
+            return
+        self._add_linearised(*self.linearise_relative(rps))
         if store:
             self.store.relative.extend(rps)
 
