@@ -89,7 +89,10 @@ def _build(cls: type, values: Mapping[str, Any], prefix: str):
 class SlamConfig:
     """Front end, filter and system settings."""
 
-    frontend: FrontEndConfig = field(default_factory=lambda: FrontEndConfig(max_features=2000))
+    # the system's front-end defaults (measured on the shared data sets, docs/system.md):
+    # more features, SIFT's 3 layers per octave, and tracks matched over the last 3 frames
+    frontend: FrontEndConfig = field(
+        default_factory=lambda: FrontEndConfig(max_features=2000, sift_octave_layers=3, match_window=3))
     filter: FilterConfig = field(default_factory=lambda: FilterConfig(gate_chi2=30.0))
     system: SystemConfig = field(default_factory=SystemConfig)
 

@@ -36,6 +36,30 @@ from .smoothing import SmoothingReport, recover_scale, smooth
 Array = NDArray[np.float64]
 
 
+def _agrees(p_i: Array, p_k: Array, q_k: Array, sol, max_rot_deg: float, max_dir_deg: float) -> bool:
+    """Whether a map-refined pose agrees with the relative-pose guess (rotation within
+    ``max_rot_deg``, step direction from ``p_i`` within ``max_dir_deg``) and fits most of
+    the known features; a refinement that disagrees was pulled away by bad matches."""
+    from .geometry import quat_conjugate, quat_log, quat_multiply
+
+    p, q, inl = sol
+    rot = np.degrees(np.linalg.norm(quat_log(quat_multiply(quat_conjugate(q_k), q))))
+    a, b = p_k - p_i, p - p_i
+    cosang = float(a @ b / max(np.linalg.norm(a) * np.linalg.norm(b), 1e-300))
+    return bool(rot <= max_rot_deg and cosang >= np.cos(np.radians(max_dir_deg)) and inl.mean() >= 0.5)
+
+
+def _inlier_fraction(camera: PinholeCamera, p: Array, q: Array, X: Array, uv: Array, px: float = 4.0) -> float:
+    """Fraction of known features ``X`` (N, 3) that pose ``(p, q)`` projects within ``px``
+    pixels of their measurements ``uv`` (N, 2)."""
+    from .models import feature_model
+
+    N = len(X)
+    h, _, _, z = feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X,
+                               camera.fx, camera.fy, camera.cx, camera.cy)
+    return float(np.mean((z > 0) & (np.linalg.norm(uv - h, axis=1) < px)))
+
+
 class TrackingState(str, Enum):
     """Per-frame tracking state (ORB-SLAM's ``eTrackingState``)."""
 
@@ -95,6 +119,7 @@ class Slam:
         self._colors: dict[int, NDArray[np.uint8]] = {}
         self._last_step = self.config.system.scale_distance
         self.smoothing: SmoothingReport | None = None
+        self.rejected_relative: list = []  # relative poses the map contradicted (not fused)
 
     # -- queries ------------------------------------------------------------------
     @property
@@ -255,11 +280,21 @@ class Slam:
         init = pose_from_relative(p_i, q_i, rp, self.camera, Xk, uv[known],
                                   default_step=sysc.scale_distance if first_step else self._last_step)
         p_k, q_k, step = init
+        use_relative = True
+        if known.sum() >= 12:  # a better linearisation point: refine on the known map
+            sol = localise_pose(self.camera, p_k, q_k, Xk, uv[known])
+            if sol is not None and _agrees(p_i, p_k, q_k, sol, max_rot_deg=2.0, max_dir_deg=10.0):
+                p_k, q_k = sol[0], sol[1]
+            elif sol is not None and sol[2].mean() > 1.5 * _inlier_fraction(self.camera, p_k, q_k, Xk, uv[known]):
+                # the map contradicts this relative pose: trust the map, drop the ZR/ZT
+                p_k, q_k, use_relative = sol[0], sol[1], False
+                self.rejected_relative.append(rp)
         filt.add_pose(k, p_k, q_k)
         if first_step:
             filt.set_scale(rp.i, k, sysc.scale_distance)
         self._last_step = step if step > 0 else self._last_step
-        filt.fuse_relative([rp])
+        if use_relative:
+            filt.fuse_relative([rp])
         ids, uv = self._record_map_observations(k)
         batch = self._new_features(k, ids, uv)
         t1 = time.perf_counter()
