@@ -105,11 +105,12 @@ class InformationFilter:
     camera : PinholeCamera
         Intrinsics used by ``Zm`` (pixels are undistorted).
     config : FilterConfig
-    recovery : {"full", "incremental"}
-        What :meth:`recover_active` (the per-frame recovery) does: solve the whole system
-        (:meth:`recover`), or solve exactly an active window of recent states and
-        marginalise the rest (:mod:`eifslam.incremental`). :meth:`recover` is always the
-        full solve.
+    recovery : {"incremental", "full"}
+        What :meth:`recover_active` (the per-frame recovery) does: solve exactly an active
+        window of recent states and marginalise the rest (:mod:`eifslam.incremental`;
+        default, constant time per frame during an exploration, see ``docs/backend.md``),
+        or solve the whole system (:meth:`recover`). :meth:`recover` is always the full
+        solve; :meth:`complete_estimate` back-substitutes the marginalised states.
     window : int
         Incremental recovery only: steps without a measurement before a state leaves the
         active window.
@@ -117,7 +118,7 @@ class InformationFilter:
 
     def __init__(
         self, camera: PinholeCamera, config: FilterConfig | None = None,
-        recovery: str = "full", window: int = 2,
+        recovery: str = "incremental", window: int = 2,
     ) -> None:
         self.camera = camera
         self.config = config or FilterConfig()

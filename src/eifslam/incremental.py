@@ -260,6 +260,9 @@ class IncrementalRecovery:
         x : (n,) the filter's estimate; active entries are overwritten with the exact
             solution of ``I x = i``, the others are left as they are.
         """
+        if not any(lis is self for lis in getattr(info, "listeners", ())):
+            raise EstimatorError("incremental recovery is not attached to this information store "
+                                 "(was the store replaced?); use the full recovery")
         st = self.stats
         st.steps += 1
         s = st.steps
