@@ -1,0 +1,215 @@
+"""Fast tests of ``benchmarks/run_all.py``, ``benchmarks/split_study.py`` and their helpers.
+
+The pure parts (row building, table formatting, data set discovery, the docs paragraph)
+are tested on fake report dicts; one smoke run of ``run_all.main`` runs real SLAM on a tiny
+rendered scene (4 frames of 320x240) in filter mode with SIFT.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def _load(name: str):
+    """Import a benchmark script as a module (benchmarks/ is not a package)."""
+    if str(BENCH) not in sys.path:
+        sys.path.insert(0, str(BENCH))
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", BENCH / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+common = _load("_common")
+run_all = _load("run_all")
+split_study = _load("split_study")
+
+
+def fake_report(**over) -> dict:
+    """A report.json dict as run_sequence returns it."""
+    rep = dict(frames=10, frames_tracked=8, frames_lost=2, map_features=123, mode="filter", detector="sift",
+               stage_ms_median=dict(detect=20.0, match=5.0, relative_pose=3.0, covariance=1.0, init=2.0,
+                                    fuse=0.5, recover=1.5, total=33.0),
+               total_seconds=4.0, fps=2.5, ate_rmse=0.048, ate_percent=0.5)
+    rep.update(over)
+    return rep
+
+
+# -- pure parts ---------------------------------------------------------------------------
+def test_build_row_from_report():
+    row = common.build_row("kitti-seq1", "filter", "sift", fake_report())
+    assert row["tracked_pct"] == pytest.approx(80.0)
+    assert row["colmap_ate"] == 0.024
+    assert row["ate_ratio_colmap"] == pytest.approx(2.0)
+    assert row["ms_fuse"] == 0.5 and row["ms_total"] == 33.0
+    assert row["ms_backend"] == pytest.approx(2.0)  # fuse + recover medians when not given
+    assert row["error"] is None and row["box_ratio_estimated"] is None and row["ba"] is None
+    json.dumps(row)  # JSON-ready
+
+
+def test_build_row_failure_and_missing_figures():
+    row = common.build_row("mine", "ba", "orb", None, error="DatasetError: no images")
+    assert row["error"] == "DatasetError: no images"
+    assert row["frames"] is None and row["ate_rmse"] is None and row["colmap_ate"] is None
+    row = common.build_row("builtin", "ba", "orb", fake_report(ate_rmse=None, ba={"seconds": 1.0},
+                                                             box_ratio_estimated=0.81, box_ratio_true=0.8),
+                           ms_backend=7.0)
+    assert row["ate_ratio_colmap"] is None and row["ba"] == {"seconds": 1.0}
+    assert row["box_ratio_estimated"] == 0.81 and row["ms_backend"] == 7.0
+
+
+def test_fmt_and_markdown_table():
+    assert common.fmt(None) == "–" and common.fmt(12) == "12" and common.fmt(0.0) == "0"
+    assert common.fmt(0.0123456) == "0.0123" and common.fmt(12345.6) == "12346"
+    assert common.fmt(float("nan")) == "nan"
+    t = common.markdown_table(["a", "b"], [["1", "x|y"]])
+    assert t.splitlines() == ["| a | b |", "|---|---|", "| 1 | x\\|y |"]
+
+
+def test_format_table_columns():
+    rows = [common.build_row("kitti-seq1", "filter", "sift", fake_report()),
+            common.build_row("builtin", "smooth", "orb", fake_report(box_ratio_estimated=0.79, box_ratio_true=0.8)),
+            common.build_row("x", "ba", "sift", None, error="RuntimeError: boom\nmore")]
+    lines = run_all.format_table(rows).strip().splitlines()
+    assert len(lines) == 2 + len(rows)
+    n_cols = len(run_all.HEADERS)
+    assert all(line.count(" | ") == n_cols - 1 for line in lines if not line.startswith("|---"))
+    assert "COLMAP ATE" in lines[0] and "ratio to COLMAP" in lines[0]
+    assert "2×" in lines[2] and "8/10 (80%)" in lines[2]
+    assert "0.790 (true 0.80)" in lines[3]
+    assert "RuntimeError: boom" in lines[4] and "more" not in lines[4]
+
+
+def test_discover_and_select(tmp_path):
+    for name in ("b-set", "a-set", ".hidden"):
+        (tmp_path / name / "images").mkdir(parents=True)
+    (tmp_path / "no-images").mkdir()
+    (tmp_path / "file.txt").write_text("x")
+    assert [p.name for p in common.discover_datasets(tmp_path)] == ["a-set", "b-set"]
+    assert common.discover_datasets(tmp_path / "missing") == []
+    sel, missing = run_all.select_datasets(tmp_path, None)
+    assert [n for n, _ in sel] == ["a-set", "b-set", "builtin"] and sel[-1][1] is None
+    sel, missing = run_all.select_datasets(tmp_path, ["builtin", "b-set", "zzz"])
+    assert [n for n, _ in sel] == ["b-set", "builtin"] and missing == ["zzz"]
+
+
+def test_parse_fractions_and_split_list():
+    assert common.split_list(" filter, smooth,,ba ") == ["filter", "smooth", "ba"]
+    assert split_study.parse_fractions("1,0.3,0.1,0.3") == [0.1, 0.3, 1.0]
+    for bad in ("0", "1.5", "x", ""):
+        with pytest.raises(ValueError):
+            split_study.parse_fractions(bad)
+
+
+def test_backend_ms_median(tmp_path):
+    f = tmp_path / "frames.json"
+    f.write_text(json.dumps({"frames": [{"ms": {"detect": 1}}, {"ms": {"fuse": 1.0, "recover": 2.0}},
+                                        {"ms": {"fuse": 3.0}}, {"ms": {"recover": 10.0, "fuse": 0.0}}]}))
+    assert common.backend_ms_median(f) == pytest.approx(3.0)
+    assert common.backend_ms_median(tmp_path / "missing.json") is None
+
+
+def test_summary_paragraph_and_provenance():
+    rows = [common.build_row("kitti-seq1", "smooth", "sift", fake_report(ate_rmse=a, map_features=m), map_fraction=f)
+            for f, a, m in ((0.1, 0.05, 100), (0.3, 0.03, 300))]
+    rows.append(common.build_row("kitti-seq1", "smooth", "sift", fake_report(frames_tracked=1, ate_rmse=None),
+                                 map_fraction=1.0))
+    text = split_study.summary_paragraph(rows, "smooth", "sift", max_frames=20)
+    assert "keeping 10% of the new tracks in the map instead of 30%" in text
+    assert "100 map features instead of 300" in text and "lowest ATE, 0.03, was at fraction 0.3" in text
+    assert "No ATE at fraction 1 (1/10 frames tracked)" in text and "first 20 frames" in text
+    info = dict(date_utc="2024-01-01 00:00 UTC", platform="Linux", cpu_count=2, cpus_usable=2, python="3.11",
+                numpy="2", scipy="1", opencv="4", eifslam_commit=None)
+    md = common.provenance_markdown(info, "python benchmarks/run_all.py --out x")
+    assert "2024-01-01" in md and "2 CPUs" in md and "`python benchmarks/run_all.py --out x`" in md
+    assert common.command_line(BENCH / "run_all.py", ["--out", "a b"]).endswith("run_all.py --out 'a b'")
+
+
+def test_split_study_with_fake_runner(tmp_path, monkeypatch):
+    """The study's loop, JSON, PNG and docs page, without running SLAM."""
+    data = tmp_path / "data"
+    (data / "tiny" / "images").mkdir(parents=True)
+
+    def fake_runner(seq, config, out_dir, **kw):
+        f = config.frontend.map_fraction
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if f == 1.0:
+            raise RuntimeError("no relative pose")
+        return fake_report(ate_rmse=0.01 / f, map_features=int(1000 * f))
+
+    import eifslam.io
+
+    # open_source is a lazy attribute of eifslam.io: replace it for this test only
+    monkeypatch.setattr(eifslam.io, "open_source", lambda path, camera=None: object(), raising=False)
+    docs = tmp_path / "docs" / "split_study.md"
+    rc = split_study.main(["--data", str(data), "--out", str(tmp_path / "out"), "--datasets", "tiny,nope",
+                           "--fractions", "0.2,0.5,1", "--docs", str(docs)], runner=fake_runner)
+    assert rc == 1  # one run failed
+    res = json.loads((tmp_path / "out" / "split_study.json").read_text())
+    assert [r["map_fraction"] for r in res["rows"]] == [0.2, 0.5, 1.0]
+    assert res["rows"][2]["error"].startswith("RuntimeError")
+    assert (tmp_path / "out" / "split_study.png").stat().st_size > 1000
+    assert (tmp_path / "docs" / "split_study.png").exists()
+    text = docs.read_text()
+    assert "![" in text and "split_study.png" in text and "keeping 20% of the new tracks" in text
+
+
+# -- smoke run on a tiny rendered scene -----------------------------------------------------
+def _tiny_dataset(root: Path, n: int = 4) -> Path:
+    """Render the first ``n`` frames of a small built-in scene into a data folder."""
+    import cv2
+
+    from eifslam.io import write_camera_yaml, write_tum
+    from eifslam.scene import make_scene, render_frame
+
+    scene = make_scene(n_frames=54, width=320, height=240)
+    (root / "images").mkdir(parents=True)
+    for k in range(n):
+        assert cv2.imwrite(str(root / "images" / f"{k:06d}.png"), render_frame(scene, k))
+    write_camera_yaml(root / "camera.yaml", scene.camera)
+    (root / "times.txt").write_text("".join(f"{t:.6f}\n" for t in scene.timestamps[:n]))
+    write_tum(root / "groundtruth.tum", scene.timestamps[:n], scene.positions[:n], scene.quats_wxyz[:n])
+    return root
+
+
+def test_run_all_smoke(tmp_path, capsys):
+    data = tmp_path / "data"
+    _tiny_dataset(data / "tiny")
+    (data / "empty").mkdir()  # no images/: not a data set
+    out = tmp_path / "out"
+    docs = tmp_path / "docs" / "results.md"
+    rc = run_all.main(["--data", str(data), "--out", str(out), "--modes", "filter", "--detectors", "sift",
+                       "--only", "tiny", "--docs", str(docs)])
+    rows = json.loads((out / "results.json").read_text())
+    assert len(rows) == 1
+    row = rows[0]
+    assert row["error"] is None, row["error"]
+    assert rc == 0
+    assert (row["dataset"], row["mode"], row["detector"], row["frames"]) == ("tiny", "filter", "sift", 4)
+    assert row["frames_tracked"] >= 3 and row["ate_rmse"] is not None and np.isfinite(row["ate_rmse"])
+    assert row["ms_total"] > 0
+    assert (out / "tiny-filter-sift" / "report.json").exists()
+    assert not (out / "tiny-filter-sift" / "report.html").exists()
+    table = (out / "results.md").read_text()
+    assert "| tiny | filter | sift |" in table
+    text = docs.read_text()
+    assert "Command: `python" in text and "--only tiny" in text and "| tiny | filter | sift |" in text
+    assert "| tiny | filter | sift |" in capsys.readouterr().out
+
+
+def test_run_all_records_failures(tmp_path):
+    data = tmp_path / "data"
+    (data / "broken" / "images").mkdir(parents=True)  # no camera, no images: open_source fails
+    rc = run_all.main(["--data", str(data), "--out", str(tmp_path / "out"), "--modes", "filter,smooth",
+                       "--detectors", "orb", "--only", "broken"])
+    rows = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert rc == 1 and len(rows) == 2 and all(r["error"] for r in rows)
+    assert run_all.main(["--data", str(data), "--out", str(tmp_path / "o2"), "--only", "nothing"]) == 2
