@@ -271,14 +271,13 @@ class IncrementalRecovery:
         self._last = np.concatenate([self._last, np.full(n - len(self._last), s, np.int64)])
         self._pos = np.concatenate([self._pos, np.full(n - len(self._pos), -1, np.int64)])
         pending, self._pending = self._pending, []
-        if pending:
-            idx = np.concatenate([p[0].ravel() for p in pending])
-            self._last[self._map.start[idx]] = s
+        touched = np.concatenate([p[0].ravel() for p in pending]) if pending else np.zeros(0, np.int64)
+        self._last[self._map.start[touched]] = s
         if not self._valid:
             self._rebuild(info, s)
         else:
             self._append(new)
-            if pending and np.any(self._pos[np.concatenate([p[0].ravel() for p in pending])] < 0):
+            if np.any(self._pos[touched] < 0):
                 st.fallbacks += 1
                 self._rebuild(info, s)
             else:
