@@ -40,6 +40,13 @@ class SystemConfig:
         Standard deviation of a map feature's pixel measurement ``Zm``.
     scale_distance : float
         Length given to the distance between the first two poses (the scale gauge).
+    recovery : {"incremental", "full"}
+        Per-frame state recovery: exact over an active window with the rest marginalised
+        (paper III-G, :mod:`eifslam.incremental`), or the full sparse solve.
+    window : int
+        Incremental recovery: frames without a measurement before a state leaves the
+        window (larger than the front end's matching window, so that a track that
+        reappears rarely touches a marginalised feature).
     """
 
     mode: str = "smooth"
@@ -49,6 +56,8 @@ class SystemConfig:
     min_feature_parallax_deg: float | None = None
     sigma_px: float = 1.0
     scale_distance: float = 1.0
+    recovery: str = "incremental"
+    window: int = 5
 
     def __post_init__(self) -> None:
         if self.mode not in ("filter", "smooth", "ba"):
@@ -56,6 +65,10 @@ class SystemConfig:
         for key in ("smooth_passes", "reference_candidates"):
             if int(getattr(self, key)) < 1:
                 raise ConfigError(f"system.{key} must be at least 1")
+        if self.recovery not in ("incremental", "full"):
+            raise ConfigError(f"system.recovery must be 'incremental' or 'full', got {self.recovery!r}")
+        if int(self.window) < 1:
+            raise ConfigError("system.window must be at least 1")
         if self.relocalise_candidates < 0:
             raise ConfigError("system.relocalise_candidates must be >= 0")
         for key in ("min_feature_parallax_deg", "sigma_px", "scale_distance"):

@@ -424,7 +424,9 @@ class InformationFilter:
         (``R_true = R_est @ Exp(dtheta)``), mapped from the 4-vector quaternion block.
         """
         cols = self.layout.pose_columns([frame_id])[0]
-        C = self.covariance(cols)
+        C = self.incremental.pose_covariance(cols) if self.incremental is not None else None
+        if C is None:
+            C = self.covariance(cols)
         q = self.x[cols[3:]]
         n = np.linalg.norm(q)
         qn = q / n

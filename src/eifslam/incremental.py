@@ -288,6 +288,24 @@ class IncrementalRecovery:
         self._marginalise(s)
         st.window_poses, st.window_features = len(self.pidx) // POSE_DIM, len(self.fidx) // FEATURE_DIM
 
+    def pose_covariance(self, cols: IntArray) -> Array | None:
+        """Marginal covariance of active pose entries ``cols`` (k,) from the window.
+
+        The window holds the exact marginal information of its states, so the block of
+        the inverse of its pose Schur complement is the exact marginal covariance.
+        Returns None when an entry is not an active pose or the window is stale.
+        """
+        if not self._valid or getattr(self, "_S_cho", None) is None:
+            return None
+        where = {int(v): i for i, v in enumerate(self._S_pidx)}  # the window as solved
+        pos = [where.get(int(c), -1) for c in cols]
+        if min(pos) < 0:
+            return None
+        E = np.zeros((len(self._S_pidx), len(pos)))
+        E[pos, np.arange(len(pos))] = 1.0
+        C = cho_solve(self._S_cho, E)[pos]
+        return 0.5 * (C + C.T)
+
     def full_solution(self, x: Array) -> Array:
         """Back-substitute every marginalised state into ``x`` (in place) in ``O(n)``.
 
@@ -353,9 +371,11 @@ class IncrementalRecovery:
         Dbf = np.einsum("fij,fj->fi", self._Dinv, self.bf.reshape(F, 3)).ravel()
         S = self.P - self.B.T @ self._DB
         r = self.bp - self.B.T @ Dbf
+        self._S_cho, self._S_pidx = None, self.pidx.copy()
         if npw:
             try:
-                xp = cho_solve(cho_factor(0.5 * (S + S.T), lower=True, check_finite=False), r)
+                self._S_cho = cho_factor(0.5 * (S + S.T), lower=True, check_finite=False)
+                xp = cho_solve(self._S_cho, r)
             except np.linalg.LinAlgError:
                 raise EstimatorError("information matrix is singular; is the gauge fixed?") from None
         else:

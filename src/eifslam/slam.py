@@ -112,7 +112,8 @@ class Slam:
         self.camera = camera
         self.config = config or SlamConfig()
         self.frontend = FrontEnd(camera, self.config.frontend)
-        self.filter = InformationFilter(camera, self.config.filter)
+        self.filter = InformationFilter(camera, self.config.filter, recovery=self.config.system.recovery,
+                                        window=self.config.system.window)
         self.results: list[TrackResult] = []
         self._timestamps: dict[int, float] = {}
         self._track_obs: dict[int, list[tuple[int, Array]]] = {}
@@ -129,6 +130,7 @@ class Slam:
     def trajectory(self) -> tuple[Array, Array, Array]:
         """Timestamps ``(P,)``, positions ``(P, 3)`` and quaternions ``(P, 4)`` of every
         tracked frame, in frame order, from the current estimate."""
+        self.filter.complete_estimate()
         ids, P, Q = self.filter.poses()
         order = np.argsort(ids)
         t = np.array([self._timestamps[i] for i in ids])[order]
@@ -136,6 +138,7 @@ class Slam:
 
     def map(self) -> tuple[NDArray[np.int64], Array, NDArray[np.uint8]]:
         """Map feature ids ``(F,)``, positions ``(F, 3)`` and RGB colours ``(F, 3)``."""
+        self.filter.complete_estimate()
         ids, X = self.filter.features()
         cols = np.array([self._colors.get(i, np.array([200, 200, 200], np.uint8)) for i in ids], np.uint8).reshape(-1, 3)
         return np.asarray(ids, np.int64), X, cols
@@ -252,7 +255,7 @@ class Slam:
         t1 = time.perf_counter()
         filt.fuse_features(batch)
         t2 = time.perf_counter()
-        filt.recover()
+        filt.recover_active()
         t3 = time.perf_counter()
         timings.update(init=1e3 * (t1 - t0), fuse=1e3 * (t2 - t1), recover=1e3 * (t3 - t2))
         return True
@@ -300,7 +303,7 @@ class Slam:
         t1 = time.perf_counter()
         filt.fuse_features(batch)
         t2 = time.perf_counter()
-        filt.recover()
+        filt.recover_active()
         t3 = time.perf_counter()
         timings.update(init=1e3 * (t1 - t0), fuse=1e3 * (t2 - t1), recover=1e3 * (t3 - t2))
 
@@ -312,24 +315,25 @@ class Slam:
         p_k, q_k = filt.pose(k)
         poses, feats, uvs = [np.full(int(known.sum()), k)], [ids[known]], [uv[known]]
         new_ids, new_X = [], []
+        # first observation from a known pose of every unknown track, grouped by that pose
+        cand: dict[int, list[tuple[int, Array, Array, list]]] = {}
         for t, u in zip(ids[~known].tolist(), uv[~known]):
             hist = [(j, v) for j, v in self._track_obs.get(t, []) if j != k and filt.layout.has_pose(j)]
-            if not hist:
-                continue
-            j, v = hist[0]
+            if hist:
+                cand.setdefault(hist[0][0], []).append((t, hist[0][1], u, hist))
+        for j, items in cand.items():
             p_j, q_j = filt.pose(j)
-            X, par, ok = triangulate(p_j, q_j, v[None], p_k, q_k, u[None], self.camera)
-            if not (ok[0] and par[0] >= sysc.feature_parallax_deg):
-                continue
-            new_ids.append(t)
-            new_X.append(X[0])
-            for jj, vv in hist:
-                poses.append(np.array([jj]))
-                feats.append(np.array([t]))
-                uvs.append(vv[None])
-            poses.append(np.array([k]))
-            feats.append(np.array([t]))
-            uvs.append(u[None])
+            uv_j = np.array([it[1] for it in items])
+            uv_k = np.array([it[2] for it in items])
+            X, par, ok = triangulate(p_j, q_j, uv_j, p_k, q_k, uv_k, self.camera)
+            for (t, _, u, hist), Xt, good in zip(items, X, ok & (par >= sysc.feature_parallax_deg)):
+                if not good:
+                    continue
+                new_ids.append(t)
+                new_X.append(Xt)
+                poses.append(np.array([jj for jj, _ in hist] + [k]))
+                feats.append(np.full(len(hist) + 1, t))
+                uvs.append(np.array([vv for _, vv in hist] + [u]))
         if new_ids:
             filt.add_features(new_ids, np.array(new_X))
         return FeatureObservations.make(np.concatenate(poses), np.concatenate(feats),
@@ -340,6 +344,7 @@ class Slam:
         """Relinearise every stored measurement and recover (paper III-E)."""
         if self.filter.layout.n_poses < 2:
             raise EifslamError("nothing to smooth: fewer than two poses are tracked")
+        self.filter.complete_estimate()
         self.smoothing = smooth(self.filter, max_passes or self.config.system.smooth_passes)
         return self.smoothing
 
