@@ -16,7 +16,10 @@ def add_common_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mode", choices=["filter", "smooth", "ba"], default="smooth",
                    help="filter only, filter + relinearise + smooth (default), or filter + full bundle adjustment")
     p.add_argument("--features", choices=["sift", "orb", "akaze", "surf"], default="sift", help="feature detector")
-    p.add_argument("--map-fraction", type=float, default=0.3, help="fraction of tracks kept in the map (Ωm)")
+    p.add_argument("--map-fraction", type=float, default=None,
+                   help="fraction of tracks kept in the map (Ωm); default 0.3 as in the paper (demo: 0.5)")
+    p.add_argument("--max-features", type=int, default=None,
+                   help="features detected per image (default 2000; demo: 4000)")
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames")
     p.add_argument("--no-html", action="store_true", help="skip report.html")
 
@@ -33,12 +36,16 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
-def make_config(args: argparse.Namespace) -> SlamConfig:
-    """The configuration the command-line options ask for."""
-    if not 0.0 < args.map_fraction <= 1.0:
-        raise ConfigError(f"--map-fraction must lie in (0, 1], got {args.map_fraction}")
-    return SlamConfig().replace(frontend={"detector": args.features, "map_fraction": args.map_fraction},
-                                system={"mode": args.mode})
+def make_config(args: argparse.Namespace, map_fraction: float = 0.3, max_features: int | None = None) -> SlamConfig:
+    """The configuration the command-line options ask for (defaults given by the command)."""
+    frac = map_fraction if args.map_fraction is None else args.map_fraction
+    if not 0.0 < frac <= 1.0:
+        raise ConfigError(f"--map-fraction must lie in (0, 1], got {frac}")
+    fe: dict = {"detector": args.features, "map_fraction": frac}
+    nfeat = max_features if args.max_features is None else args.max_features
+    if nfeat is not None:
+        fe["max_features"] = nfeat
+    return SlamConfig().replace(frontend=fe, system={"mode": args.mode})
 
 
 def main(args: argparse.Namespace) -> int:
