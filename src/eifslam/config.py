@@ -40,6 +40,10 @@ class SystemConfig:
         Standard deviation of a map feature's pixel measurement ``Zm``.
     scale_distance : float
         Length given to the distance between the first two poses (the scale gauge).
+    relative_gate_chi2 : float or None
+        A ``ZR``/``ZT`` pair whose normalised innovation squared (5 DOF) at the pose the
+        known map supports exceeds this is not fused (a wrong five-point solution or an
+        overconfident covariance); ``None`` fuses every pair.
     recovery : {"incremental", "full"}
         Per-frame state recovery: exact over an active window with the rest marginalised
         (paper III-G, :mod:`eifslam.incremental`), or the full sparse solve.
@@ -58,6 +62,7 @@ class SystemConfig:
     scale_distance: float = 1.0
     recovery: str = "incremental"
     window: int = 5
+    relative_gate_chi2: float | None = 50.0
 
     def __post_init__(self) -> None:
         if self.mode not in ("filter", "smooth", "ba"):
@@ -65,6 +70,8 @@ class SystemConfig:
         for key in ("smooth_passes", "reference_candidates"):
             if int(getattr(self, key)) < 1:
                 raise ConfigError(f"system.{key} must be at least 1")
+        if self.relative_gate_chi2 is not None and not self.relative_gate_chi2 > 0:
+            raise ConfigError("system.relative_gate_chi2 must be positive or None")
         if self.recovery not in ("incremental", "full"):
             raise ConfigError(f"system.recovery must be 'incremental' or 'full', got {self.recovery!r}")
         if int(self.window) < 1:

@@ -401,7 +401,14 @@ class InformationFilter:
         other states keep their last estimate) or :meth:`recover` (``"full"``)."""
         if self.incremental is None:
             return self.recover()
-        self.incremental.step(self.layout, self.info, self._x[: self.dim])
+        try:
+            self.incremental.step(self.layout, self.info, self._x[: self.dim])
+        except EstimatorError:
+            # the dense window could not be solved (numerically indefinite): rebuild it at
+            # the next step and use the full sparse solve for this one
+            self.incremental.on_invalidate()
+            self.incremental.stats.fallbacks += 1
+            return self.recover()
         return self.x
 
     def complete_estimate(self) -> Array:

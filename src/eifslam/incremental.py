@@ -312,6 +312,8 @@ class IncrementalRecovery:
         ``x`` must hold the current window solution (as :meth:`step` left it); entries
         added to the layout after the last step are left untouched.
         """
+        if len(self.xp) != len(self.pidx) or len(self.xf) != len(self.fidx):
+            return x  # the window changed without a solve: nothing consistent to add
         x[self.pidx], x[self.fidx] = self.xp, self.xf
         for c in reversed(self._conds):
             c.apply(x)

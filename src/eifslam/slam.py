@@ -283,11 +283,11 @@ class Slam:
         init = pose_from_relative(p_i, q_i, rp, self.camera, Xk, uv[known],
                                   default_step=sysc.scale_distance if first_step else self._last_step)
         p_k, q_k, step = init
-        use_relative = True
+        use_relative, refined = True, False
         if known.sum() >= 12:  # a better linearisation point: refine on the known map
             sol = localise_pose(self.camera, p_k, q_k, Xk, uv[known])
             if sol is not None and _agrees(p_i, p_k, q_k, sol, max_rot_deg=2.0, max_dir_deg=10.0):
-                p_k, q_k = sol[0], sol[1]
+                p_k, q_k, refined = sol[0], sol[1], sol[2].mean() >= 0.7
             elif sol is not None and sol[2].mean() > 1.5 * _inlier_fraction(self.camera, p_k, q_k, Xk, uv[known]):
                 # the map contradicts this relative pose: trust the map, drop the ZR/ZT
                 p_k, q_k, use_relative = sol[0], sol[1], False
@@ -296,6 +296,12 @@ class Slam:
         if first_step:
             filt.set_scale(rp.i, k, sysc.scale_distance)
         self._last_step = step if step > 0 else self._last_step
+        if use_relative and refined and sysc.relative_gate_chi2 is not None:
+            # ZR/ZT against the pose the map supports: an inconsistent one is not fused
+            _, _, W, innov = filt.linearise_relative([rp])
+            if float(innov[0] @ W[0] @ innov[0]) > sysc.relative_gate_chi2:
+                use_relative = False
+                self.rejected_relative.append(rp)
         if use_relative:
             filt.fuse_relative([rp])
         ids, uv = self._record_map_observations(k)
