@@ -250,15 +250,20 @@ class Slam:
             return False
         p, q, _ = sol
         filt.add_pose(k, p, q)
+        self._fuse_map_and_recover(k, t0, timings)
+        return True
+
+    def _fuse_map_and_recover(self, k: int, t0: float, timings: dict) -> None:
+        """Algorithm 1 steps 3-5 for a frame whose pose is in the state: new features,
+        fuse every ``Zm``, recover; ``t0`` is when initialisation started."""
         ids, uv = self._record_map_observations(k)
         batch = self._new_features(k, ids, uv)
         t1 = time.perf_counter()
-        filt.fuse_features(batch)
+        self.filter.fuse_features(batch)
         t2 = time.perf_counter()
-        filt.recover_active()
+        self.filter.recover_active()
         t3 = time.perf_counter()
         timings.update(init=1e3 * (t1 - t0), fuse=1e3 * (t2 - t1), recover=1e3 * (t3 - t2))
-        return True
 
     def _record_map_observations(self, k: int) -> tuple[NDArray[np.int64], Array]:
         ids, uv = self.frontend.map_observations(k)
@@ -304,14 +309,7 @@ class Slam:
                 self.rejected_relative.append(rp)
         if use_relative:
             filt.fuse_relative([rp])
-        ids, uv = self._record_map_observations(k)
-        batch = self._new_features(k, ids, uv)
-        t1 = time.perf_counter()
-        filt.fuse_features(batch)
-        t2 = time.perf_counter()
-        filt.recover_active()
-        t3 = time.perf_counter()
-        timings.update(init=1e3 * (t1 - t0), fuse=1e3 * (t2 - t1), recover=1e3 * (t3 - t2))
+        self._fuse_map_and_recover(k, t0, timings)
 
     def _new_features(self, k: int, ids: NDArray[np.int64], uv: Array) -> FeatureObservations:
         """``Zm`` of frame *k* for known features, plus every observation of features that
