@@ -274,7 +274,7 @@ class InformationFilter:
         self.info.add(idx, Lam, eta)
         self._factor = None
 
-    def linearise_features(self, obs: FeatureObservations):
+    def linearise_features(self, obs: FeatureObservations, gate: bool = True):
         """Linearise ``Zm`` at the current estimate.
 
         Returns
@@ -292,12 +292,12 @@ class InformationFilter:
         chi2 = np.sum(innov**2, 1) / obs.sigma_px**2
         ok = (depth > self.config.min_depth) & np.isfinite(chi2)
         chi2 = np.where(ok, chi2, np.inf)
-        if self.config.gate_chi2 is not None:
+        if gate and self.config.gate_chi2 is not None:
             ok &= chi2 <= self.config.gate_chi2
         W = np.eye(2)[None] / (obs.sigma_px**2)[:, None, None]
         return ok, np.concatenate([pc, fc], 1), np.concatenate([Jp, Jf], 2), W, innov, chi2
 
-    def fuse_features(self, obs: FeatureObservations, store: bool = True) -> FeatureObservations:
+    def fuse_features(self, obs: FeatureObservations, store: bool = True, gate: bool = True) -> FeatureObservations:
         """Fuse a batch of ``Zm``; return the measurements actually fused.
 
         Measurements whose predicted depth is below ``min_depth`` or whose innovation
@@ -305,7 +305,7 @@ class InformationFilter:
         """
         if len(obs) == 0:
             return obs
-        ok, idx, J, W, innov, _ = self.linearise_features(obs)
+        ok, idx, J, W, innov, _ = self.linearise_features(obs, gate)
         if not np.all(ok):
             obs, idx, J, W, innov = obs.subset(ok), idx[ok], J[ok], W[ok], innov[ok]
         self._add_linearised(idx, J, W, innov)
