@@ -23,7 +23,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 #: Name of the built-in rendered scene in ``--only`` / ``--datasets`` lists and in results.
 BUILTIN = "builtin"
 
-#: COLMAP ATE RMSE on the shared data (``/work/shared/EVALUATION.md``), in the ground
+#: COLMAP ATE RMSE on the shared data (``../shared/EVALUATION.md``), in the ground
 #: truth's units. middlebury-templering: on the 24 of 31 frames COLMAP registered.
 COLMAP_ATE: dict[str, float] = {
     "kitti-seq1": 0.024,

@@ -12,7 +12,7 @@ The EKF stops after the first frame whose update exceeds ``--ekf-budget-s``.
 Writes ``DIR/ekf_vs_eif.json`` (``{"eif": [{"frame", "state_dim", "ms"}...], "eif_full":
 [...], "ekf": [...], "ekf_stopped_at_state_dim": n}``) and ``DIR/ekf_vs_eif.png``.
 
-    python benchmarks/ekf_vs_eif.py --out /tmp/ekf_vs_eif
+    python benchmarks/ekf_vs_eif.py --out out/ekf_vs_eif
 """
 
 from __future__ import annotations

@@ -103,7 +103,7 @@ def table_notes(max_frames: int | None) -> str:
         "ATE: RMSE of the camera centres after a Sim(3) (Umeyama) alignment to the ground truth, "
         "over the tracked frames, in the ground truth's units (m, except middlebury-templering); "
         "read it together with the tracked fraction.",
-        "COLMAP ATE: pycolmap 4.2.1 on the same images (/work/shared/EVALUATION.md); "
+        "COLMAP ATE: pycolmap 4.2.1 on the same images (../shared/EVALUATION.md); "
         "middlebury-templering's 0.0012 is over the 24 of 31 frames COLMAP registered. "
         "Ratio = eifslam ATE / COLMAP ATE (below 1: eifslam is more accurate).",
         "Stage columns: median milliseconds per frame over the frames where the stage ran; "
