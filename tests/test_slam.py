@@ -27,7 +27,7 @@ def test_config_rejects_unknown_keys_and_bad_values():
     with pytest.raises(ConfigError, match="section"):
         SlamConfig.from_dict({"backend": {}})
     cfg = SlamConfig.from_dict({"system": {"mode": "filter"}})
-    assert cfg.system.feature_parallax_deg == 3.0 and SlamConfig().system.feature_parallax_deg == 1.5
+    assert cfg.system.mode == "filter" and SlamConfig().system.feature_parallax_deg == 2.0
 
 
 @pytest.fixture(scope="module")

@@ -31,11 +31,10 @@ class SystemConfig:
         How many of the most recent known poses to try as the reference of a new image.
     relocalise_candidates : int
         How many older poses to try when the recent ones fail (tracking lost).
-    min_feature_parallax_deg : float or None
-        A map feature is created once two of its rays differ by this angle. ``None``
-        (default) picks by mode: 3 degrees in filter mode, whose EIF never relinearises and
-        so needs good initial guesses, 1.5 degrees in smooth mode, which relinearises and
-        gains from the extra features (measured on kitti-seq1, see docs/system.md).
+    min_feature_parallax_deg : float
+        A map feature is created once two of its rays differ by this angle (2 degrees:
+        lower lets poorly triangulated features in, which the EIF never relinearises;
+        higher starves slow sequences of map features; measured in docs/system.md).
     sigma_px : float
         Standard deviation of a map feature's pixel measurement ``Zm``.
     scale_distance : float
@@ -57,7 +56,7 @@ class SystemConfig:
     smooth_passes: int = 5
     reference_candidates: int = 4
     relocalise_candidates: int = 30
-    min_feature_parallax_deg: float | None = None
+    min_feature_parallax_deg: float = 2.0
     sigma_px: float = 1.0
     scale_distance: float = 1.0
     recovery: str = "incremental"
@@ -80,18 +79,14 @@ class SystemConfig:
             raise ConfigError("system.relocalise_candidates must be >= 0")
         for key in ("min_feature_parallax_deg", "sigma_px", "scale_distance"):
             v = getattr(self, key)
-            if key == "min_feature_parallax_deg" and v is None:
-                continue
             if not (isinstance(v, (int, float)) and v > 0):
                 raise ConfigError(f"system.{key} must be a positive number, got {v!r}")
 
 
     @property
     def feature_parallax_deg(self) -> float:
-        """The parallax a new map feature needs (resolves the mode-dependent default)."""
-        if self.min_feature_parallax_deg is not None:
-            return float(self.min_feature_parallax_deg)
-        return 3.0 if self.mode == "filter" else 1.5
+        """The parallax a new map feature needs, degrees."""
+        return float(self.min_feature_parallax_deg)
 
 
 def _build(cls: type, values: Mapping[str, Any], prefix: str):
