@@ -29,6 +29,7 @@ import yaml
 from numpy.typing import NDArray
 
 from ..camera import PinholeCamera
+from .files import read_text
 from ..errors import CalibrationError, EifslamError
 
 __all__ = [
@@ -65,12 +66,7 @@ _OpenCVLoader.add_multi_constructor("!", _any_tag)
 
 
 def _read_text(path: Path) -> str:
-    try:
-        return path.read_text()
-    except FileNotFoundError:
-        raise CalibrationError(f"{path}: camera file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CalibrationError(f"{path}: cannot read camera file ({exc})") from None
+    return read_text(path, "camera file", CalibrationError)
 
 
 def _load_yaml(text: str, name: str) -> Any:

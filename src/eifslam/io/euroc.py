@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..camera import PinholeCamera
+from .files import read_text
 from ..errors import DatasetError
 from ..geometry import quat_to_rotmat
 from .cameras import read_euroc_sensor
@@ -49,12 +50,7 @@ def read_euroc_csv(path: str | Path, min_columns: int) -> tuple[NDArray[np.int64
         Missing file or a line with too few columns or a bad timestamp.
     """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot read ({exc})") from None
+    text = read_text(path, "")
     stamps: list[int] = []
     rest: list[list[str]] = []
     for lineno, raw in enumerate(text.splitlines(), start=1):

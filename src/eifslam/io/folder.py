@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..camera import PinholeCamera
+from .files import read_text
 from ..errors import DatasetError
 from .cameras import load_camera
 from .images import image_size, list_images
@@ -44,12 +45,7 @@ def read_times(path: str | Path, expected: int | None = None) -> NDArray[np.floa
         ``expected``, or timestamps that do not increase (names the file and line).
     """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: timestamps file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot read timestamps ({exc})") from None
+    text = read_text(path, "timestamps", missing="timestamps file not found")
     vals: list[float] = []
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()

@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..camera import PinholeCamera
+from .files import read_text
 from ..errors import DatasetError
 from .cameras import _read_text, parse_kitti_calib
 from .folder import read_times, resolve_camera
@@ -51,12 +52,7 @@ def read_kitti_poses(path: str | Path) -> NDArray[np.float64]:
         Missing file, a line without 12 numbers, non-finite values or a non-rotation.
     """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: poses file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot read poses ({exc})") from None
+    text = read_text(path, "poses", missing="poses file not found")
     mats = []
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()

@@ -17,6 +17,7 @@ from typing import TextIO
 import numpy as np
 from numpy.typing import NDArray
 
+from .files import read_text
 from ..errors import DatasetError
 from ..geometry import quat_normalize, quat_to_rotmat, quat_wxyz_to_xyzw, quat_xyzw_to_wxyz
 
@@ -170,12 +171,7 @@ def read_tum(path: str | Path) -> Trajectory:
         The file is missing, unreadable or malformed (message names the file).
     """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: trajectory file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot read trajectory file ({exc})") from None
+    text = read_text(path, "trajectory file")
     return parse_tum(io.StringIO(text), name=str(path))
 
 

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import PinholeCamera
+from .files import read_text
 from ..errors import DatasetError
 from .folder import ground_truth_at_frames, resolve_camera
 from .sequence import Frame, Sequence
@@ -44,12 +45,7 @@ def read_file_list(path: str | Path) -> list[tuple[float, str]]:
         Missing file or a malformed line (names the file and line).
     """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: file list not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot read file list ({exc})") from None
+    text = read_text(path, "file list")
     out: list[tuple[float, str]] = []
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
