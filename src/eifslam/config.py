@@ -35,6 +35,11 @@ class SystemConfig:
         A map feature is created once two of its rays differ by this angle (2 degrees:
         lower lets poorly triangulated features in, which the EIF never relinearises;
         higher starves slow sequences of map features; measured in docs/system.md).
+    init_parallax_deg : float
+        The pair that initialises the map (III-C: the first frame and the first later
+        frame related to it) needs at least this median parallax, degrees; until then
+        frames wait, and are localised on the map once it exists. Larger than the front
+        end's ``min_parallax_deg`` so that the first map is well triangulated.
     sigma_px : float
         Standard deviation of a map feature's pixel measurement ``Zm``.
     scale_distance : float
@@ -57,6 +62,7 @@ class SystemConfig:
     reference_candidates: int = 4
     relocalise_candidates: int = 30
     min_feature_parallax_deg: float = 2.0
+    init_parallax_deg: float = 0.5
     sigma_px: float = 1.0
     scale_distance: float = 1.0
     recovery: str = "incremental"
@@ -77,6 +83,8 @@ class SystemConfig:
             raise ConfigError("system.window must be at least 1")
         if self.relocalise_candidates < 0:
             raise ConfigError("system.relocalise_candidates must be >= 0")
+        if not 0.0 <= self.init_parallax_deg < 90.0:
+            raise ConfigError("system.init_parallax_deg must be in [0, 90)")
         for key in ("min_feature_parallax_deg", "sigma_px", "scale_distance"):
             v = getattr(self, key)
             if not (isinstance(v, (int, float)) and v > 0):

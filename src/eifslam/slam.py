@@ -121,6 +121,7 @@ class Slam:
         self._last_step = self.config.system.scale_distance
         self.smoothing: SmoothingReport | None = None
         self.rejected_relative: list = []  # relative poses the map contradicted (not fused)
+        self._waiting: list[int] = []  # frames that waited for the first baseline
 
     # -- queries ------------------------------------------------------------------
     @property
@@ -195,14 +196,69 @@ class Slam:
         res = TrackResult(k, ts, TrackingState.TRACKING, p, q, cov, reference=rp.measurement.i, timings_ms=timings)
         return self._finish(res, t0)
 
+    def _untracked(self) -> list[int]:
+        """Frames (after the first) that have no pose in the state, in frame order."""
+        return [r.frame_id for r in self.results
+                if r.frame_id > 0 and not self.filter.layout.has_pose(r.frame_id)]
+
+    def _retry(self, j: int, reason: str) -> bool:
+        """Localise an earlier frame *j* that has no pose: from the map alone, else from a
+        relative pose to the nearest known poses. On success the frame's
+        :class:`TrackResult` is updated in place (``reason`` says why it was late)."""
+        timings: dict[str, float] = {}
+        last_step = self._last_step
+        try:
+            if self._localise_from_map(j, timings):
+                ref = None
+            else:
+                rp, _ = self._find_reference(j, timings, relocalise=False)
+                if rp is None:
+                    return False
+                self._localise_and_fuse(j, rp, timings)
+                ref = rp.measurement.i
+        except EstimatorError:
+            return False
+        finally:
+            self._last_step = last_step  # the step between consecutive frames, not this one's
+        p, q = self.filter.pose(j)
+        old = self.results[j]
+        self.results[j] = TrackResult(j, old.timestamp, TrackingState.TRACKING, p, q, self.filter.pose_covariance(j),
+                                      reason=reason, reference=ref, timings_ms={**old.timings_ms, **timings},
+                                      map_features=self.filter.layout.n_features, state_dim=self.filter.dim)
+        return True
+
+    def finish(self, max_passes: int = 2) -> int:
+        """Give every frame without a pose one more chance against the final map (an
+        offline step, run by ``eifslam run`` before smoothing): frames lost on the way, and
+        frames that waited for the first baseline. Returns how many frames it added."""
+        added = 0
+        if self.filter.layout.n_poses < 2:
+            return 0
+        for _ in range(max_passes):
+            new = sum(self._retry(j, "localised after the run, against the final map") for j in self._untracked())
+            added += new
+            if new == 0:
+                break
+        if added:
+            self.filter.recover_active()
+        return added
+
     def _lost_state(self) -> TrackingState:
         return TrackingState.INITIALISING if self.filter.layout.n_poses < 2 else TrackingState.LOST
 
     def _finish(self, res: TrackResult, t0: float) -> TrackResult:
+        self.results.append(res)
+        if res.position is None and res.state is TrackingState.INITIALISING and res.frame_id > 0:
+            self._waiting.append(res.frame_id)
+        elif res.state is TrackingState.TRACKING and self._waiting and self.filter.layout.n_poses >= 2:
+            # the map now exists: the frames that waited for a baseline are localised on it,
+            # nearest to the new frame first (they share the most features with it)
+            for j in sorted(self._waiting, reverse=True):
+                self._retry(j, "localised once the map was initialised (waited for a baseline)")
+            self._waiting = []
         res.timings_ms["total"] = 1e3 * (time.perf_counter() - t0)
         res.map_features = self.filter.layout.n_features
         res.state_dim = self.filter.dim
-        self.results.append(res)
         return res
 
     def _find_reference(self, k: int, timings: dict, relocalise: bool) -> tuple[RelativePoseResult | None, RelativePoseResult | None]:
@@ -213,7 +269,7 @@ class Slam:
         after matching the frame against them (tracking lost).
         """
         sysc = self.config.system
-        known = self.filter.layout.pose_ids[::-1]
+        known = self._nearest_known(k)
         n = sysc.reference_candidates
         if relocalise:
             older = known[n : n + sysc.relocalise_candidates]
@@ -229,9 +285,15 @@ class Slam:
             timings["relative_pose"] = timings.get("relative_pose", 0.0) + r.timings_ms.get("relative_pose", 0.0)
             timings["covariance"] = timings.get("covariance", 0.0) + r.timings_ms.get("covariance", 0.0)
             last = r
+            if r.ok and self.filter.layout.n_poses == 1 and r.parallax_deg < sysc.init_parallax_deg:
+                continue  # too narrow a baseline to initialise the map on
             if r.ok:
                 return r, r
         return None, last
+
+    def _nearest_known(self, k: int) -> list[int]:
+        """Known pose ids, nearest to frame *k* first (for a new frame: most recent first)."""
+        return sorted(self.filter.layout.pose_ids, key=lambda c: (abs(c - k), -c))
 
     def _localise_from_map(self, k: int, timings: dict) -> bool:
         """Add frame *k* from ``Zm`` of known map features alone (no usable baseline)."""
@@ -244,7 +306,7 @@ class Slam:
         if known.sum() < 12:
             return False
         X = filt.x[filt.layout.feature_columns(ids[known])]
-        p0, q0 = filt.pose(filt.layout.pose_ids[-1])
+        p0, q0 = filt.pose(self._nearest_known(k)[0])
         sol = localise_pose(self.camera, p0, q0, X, uv[known])
         if sol is None:
             return False
@@ -359,17 +421,26 @@ class Slam:
     # -- sessions -----------------------------------------------------------------
     def save(self, path: str | Path) -> None:
         """Save the whole session (filter, front end, results) to a file."""
-        fe = self.frontend
-        detector, matcher, factor = fe._detector, fe._matcher, self.filter._factor
+        fe, filt = self.frontend, self.filter
+        inc = filt.incremental
+        filt.complete_estimate()  # every state at the solution, so the window can be dropped
+        detector, matcher, factor = fe._detector, fe._matcher, filt._factor
         fe._detector = fe._matcher = None
-        self.filter._factor = None  # the factorisation is rebuilt on demand
+        filt._factor = None  # factorisations (SuperLU) do not pickle; rebuilt on demand
+        saved_inc = None
+        if inc is not None:  # the window's conditionals hold factorisations: rebuild after load
+            saved_inc = inc.__dict__.copy()
+            inc.on_invalidate()
+            inc._conds = []
         try:
             with open(path, "wb") as fh:
                 pickle.dump({"version": 1, "slam": self}, fh, protocol=pickle.HIGHEST_PROTOCOL)
         except (OSError, TypeError, pickle.PicklingError) as exc:
             raise EifslamError(f"cannot save session to {path}: {exc}") from exc
         finally:
-            fe._detector, fe._matcher, self.filter._factor = detector, matcher, factor
+            fe._detector, fe._matcher, filt._factor = detector, matcher, factor
+            if saved_inc is not None:
+                inc.__dict__.update(saved_inc)
 
     @staticmethod
     def load(path: str | Path) -> "Slam":
@@ -385,6 +456,8 @@ class Slam:
         if not isinstance(blob, dict) or blob.get("version") != 1:
             raise EifslamError(f"{path} is not an eifslam session file")
         slam: Slam = blob["slam"]
+        if not hasattr(slam, "_waiting"):  # saved by an older version
+            slam._waiting = []
         cfg = slam.config.frontend
         slam.frontend._detector = make_detector(cfg)
         slam.frontend._matcher = DescriptorMatcher(cfg.ratio, cfg.mutual)

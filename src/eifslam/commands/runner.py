@@ -44,6 +44,11 @@ def run_sequence(seq, config: SlamConfig, out_dir: Path, max_frames: int | None 
         bar.close()
     if stopped:
         print(f"eifslam: {stopped}; writing what was estimated so far", file=sys.stderr)
+    if stopped is None or stopped.startswith("stopped"):
+        try:  # one more chance for every frame without a pose, against the final map
+            slam.finish()
+        except EifslamError as exc:
+            print(f"eifslam: retrying lost frames failed ({exc})", file=sys.stderr)
     if config.system.mode == "smooth" and slam.filter.layout.n_poses >= 2:
         try:
             slam.smooth()
