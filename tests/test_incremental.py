@@ -74,23 +74,26 @@ def test_incremental_run_equals_full_run():
     assert rel_err(b.information_vector(), a.information_vector()) < 1e-10
 
 
-def test_fallback_when_a_marginalised_state_is_measured_again(incremental_run):
+def test_reactivation_when_a_marginalised_state_is_measured_again(incremental_run):
     sc, m, f, _, _ = incremental_run
     last = f.layout.pose_ids[-1]
     seen = m.frames[last].subset(f.layout.has_features(m.frames[last].feature))
     q, t = true_relative(sc, 1, last)
-    before = f.incremental.stats.fallbacks
+    st = f.incremental.stats
+    before, rebuilds, react = st.fallbacks, st.rebuilds, st.reactivations
     f.fuse_relative([RelativePose(1, last, q, t, m.rel_cov)])  # a loop closure to pose 1
     f.fuse_features(seen)  # and the last image again: its features are active
     f.recover_active()
-    assert f.incremental.stats.fallbacks == before + 1
+    # pose 1 and the poses eliminated after it come back by undoing their eliminations
+    assert st.reactivations == react + 1 and st.reactivated_poses > 1
+    assert st.fallbacks == before and st.rebuilds == rebuilds
     a = f.incremental.active_indices
     assert f.layout.pose_offset(1) in a  # pose 1 is back in the window
     assert rel_err(f.x[a], full_solve(f)[a]) < 1e-8
-    # the rebuilt window keeps working: measurements of active states, no fallback
+    # the window keeps working: measurements of active states, no fallback
     f.fuse_features(seen)
     f.recover_active()
-    assert f.incremental.stats.fallbacks == before + 1
+    assert f.incremental.stats.fallbacks == before
     a = f.incremental.active_indices
     assert rel_err(f.x[a], full_solve(f)[a]) < 1e-8
     marg = f.incremental.stats.marginalised_poses
@@ -126,3 +129,96 @@ def test_bad_settings_are_rejected():
         InformationFilter(sc.camera, recovery="incremental", window=0)
     with pytest.raises(ConfigError):
         IncrementalRecovery(feature_window=2, pose_window=1.5)
+
+
+def _old_image_again(f: InformationFilter, m, k: int) -> None:
+    """Fuse image ``k`` once more: its pose and features are marginalised by now."""
+    obs = m.frames[k]
+    f.fuse_features(obs.subset(f.layout.has_features(obs.feature)), store=False)
+
+
+def test_reactivated_features_and_poses_stay_exact_every_frame():
+    """Old images fused again in the middle of a run (re-observed features, a frame
+    localised late): their marginalised poses and features are re-activated by undoing
+    their conditionals, never rebuilt, and the window equals the full solve each frame."""
+    sc, m = scene(30, 7)
+    f = InformationFilter(sc.camera, recovery="incremental", window=1)
+    diffs = []
+
+    def check(k, filt):
+        if k in (12, 13, 20, 27):
+            _old_image_again(filt, m, k - 9)  # long marginalised (window 1)
+            filt.recover_active()
+        a = filt.incremental.active_indices
+        diffs.append(rel_err(filt.x[a], full_solve(filt)[a]))
+
+    run_filter(sc, m, f, on_frame=check)
+    st = f.incremental.stats
+    assert max(diffs) < 1e-8
+    assert st.fallbacks == 0 and st.rebuilds == 1
+    assert st.reactivations >= 4 and st.reactivated_features > 10 and st.reactivated_poses >= 4
+    # the re-activated states were marginalised again, the conditionals stay consistent
+    assert rel_err(f.x, full_solve(f)) < 1e-8
+    assert rel_err(f.x, np.linalg.solve(f.information_matrix().toarray(), f.information_vector())) < 1e-8
+
+
+def test_undone_elimination_restores_the_window_exactly():
+    """Undoing a conditional then marginalising the same states again gives the same
+    window as never having marginalised them (up to rounding)."""
+    sc, m = scene(25, 4)
+    f = run_filter(sc, m, InformationFilter(sc.camera, recovery="incremental", window=1))
+    inc = f.incremental
+    x_before = full_solve(f)
+    offs = [f.layout.pose_offset(k) for k in f.layout.pose_ids]
+    old = next(o for o in offs if inc._pos[o] < 0)  # noqa: SLF001  the oldest marginalised pose
+    assert inc._reactivate(np.array([old]))  # noqa: SLF001
+    assert old in inc.active_indices
+    inc._solve()  # noqa: SLF001
+    a = inc.active_indices
+    x = np.concatenate([inc.xp, inc.xf])
+    assert rel_err(x, x_before[a]) < 1e-8
+
+
+def test_state_in_a_rebuild_falls_back_to_a_rebuild():
+    """A rebuild keeps the eliminated part as one sparse factorisation, which cannot be
+    undone: measuring a state in it again rebuilds (and stays exact)."""
+    sc, m = scene(15, 5)
+    f = run_filter(sc, m, InformationFilter(sc.camera, recovery="incremental", window=1))
+    smooth(f, max_passes=1)  # I replaced: the next step rebuilds into one factorisation
+    f.recover_active()
+    st = f.incremental.stats
+    fallbacks, rebuilds = st.fallbacks, st.rebuilds
+    _old_image_again(f, m, 2)
+    f.recover_active()
+    assert st.fallbacks == fallbacks + 1 and st.rebuilds == rebuilds + 1
+    a = f.incremental.active_indices
+    assert rel_err(f.x[a], full_solve(f)[a]) < 1e-8
+    f.complete_estimate()
+    assert rel_err(f.x, full_solve(f)) < 1e-8
+
+
+def test_indefinite_window_is_solved_without_a_rebuild(monkeypatch):
+    """When the Cholesky factorisation of the window fails (a numerically indefinite
+    pose Schur complement, as on long real sequences), the window is solved by LDL^T and
+    stays valid: no rebuild, no fallback."""
+    import eifslam.incremental as incmod
+
+    sc, m = scene(20, 9)
+    f = InformationFilter(sc.camera, recovery="incremental", window=1)
+    real = incmod.cho_factor
+    calls = {"n": 0}
+
+    def flaky(A, *args, **kw):
+        calls["n"] += 1
+        if A.shape[0] > 7 and calls["n"] % 3 == 0:
+            raise np.linalg.LinAlgError("not positive definite (simulated)")
+        return real(A, *args, **kw)
+
+    monkeypatch.setattr(incmod, "cho_factor", flaky)
+    diffs = []
+    run_filter(sc, m, f, on_frame=lambda k, filt: diffs.append(
+        rel_err(filt.x[filt.incremental.active_indices], full_solve(filt)[filt.incremental.active_indices])))
+    st = f.incremental.stats
+    assert st.indefinite_solves > 0 and st.fallbacks == 0 and st.rebuilds == 1
+    assert max(diffs) < 1e-8
+    assert rel_err(f.x, full_solve(f)) < 1e-8

@@ -25,11 +25,16 @@ So the window keeps its structure forever. Each elimination stores its condition
 (``x_q = A^-1 (b_q - C x_rest)``), which is one block row of a Cholesky factorisation in
 elimination order: the full state follows by back substitution in reverse order in
 ``O(n)`` (:meth:`IncrementalRecovery.full_solution`). The result is exact (equal to the
-full sparse solve) as long as no measurement touches a marginalised state; when one does
-(loop closure, relocalisation, a feature seen again after a gap), the window is rebuilt
-from the full sparse ``I`` (:func:`eifslam.recovery.factorize` on the eliminated part)
-and the event is counted. Rebuilding also follows :meth:`InformationStore.reset` /
-``set`` (smoothing, rescaling).
+full sparse solve). When a measurement touches a marginalised state (loop closure,
+relocalisation, a feature seen again after a gap, a frame localised late, earlier
+observations of a newly triangulated feature), the state is re-activated: its
+conditional is undone (``C^T A^-1 C`` added back to the window, its rows re-inserted),
+after the conditionals of the later-eliminated poses it was conditioned on, as iSAM2
+re-eliminates the path to the root of its Bayes tree; no access to the full ``I``. Only
+a state inside a rebuild's sparse factorisation cannot be re-activated: then the window
+is rebuilt from the full sparse ``I`` (:func:`eifslam.recovery.factorize` on the
+eliminated part) and the event is counted as a fallback. Rebuilding also follows
+:meth:`InformationStore.reset` / ``set`` (smoothing, rescaling).
 """
 
 from __future__ import annotations
@@ -40,7 +45,7 @@ from typing import Protocol
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
-from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg import cho_factor, cho_solve, solve
 
 from .errors import ConfigError, EstimatorError
 from .information import InformationStore
@@ -138,24 +143,53 @@ class RecoveryStats:
     Attributes
     ----------
     steps : recoveries done.
-    fallbacks : steps where a measurement touched a marginalised state (full rebuild).
+    fallbacks : steps where a measurement touched a marginalised state that could not be
+        re-activated (full rebuild), plus solves that failed (see
+        :meth:`eifslam.filter.InformationFilter.recover_active`).
     rebuilds : full rebuilds for any reason (fallbacks, ``I`` reset/set, first use).
-    marginalised_poses, marginalised_features : states eliminated so far.
+    reactivations : steps where a measurement touched marginalised states and they were
+        re-activated (their conditionals undone, no rebuild).
+    reactivated_poses, reactivated_features : states brought back into the window so far
+        (the touched ones and the later-eliminated poses they were conditioned on).
+    marginalised_poses, marginalised_features : states eliminated so far (re-eliminations
+        included).
     window_poses, window_features : size of the active window after the last step.
+    max_window_poses : largest number of active poses solved in one step.
+    indefinite_solves : steps whose pose Schur complement was numerically indefinite
+        (solved by ``LDL^T`` instead of Cholesky; see :meth:`IncrementalRecovery._solve`).
     """
 
     steps: int = 0
     fallbacks: int = 0
     rebuilds: int = 0
+    reactivations: int = 0
+    reactivated_poses: int = 0
+    reactivated_features: int = 0
     marginalised_poses: int = 0
     marginalised_features: int = 0
     window_poses: int = 0
     window_features: int = 0
+    max_window_poses: int = 0
+    indefinite_solves: int = 0
 
 
 @dataclass
 class _Conditional:
-    """``x[idx] = solve(b - C @ x[cidx])``; ``solve`` is 3x3 blocks, a Cholesky or a factor."""
+    """``x[idx] = solve(b - C @ x[cidx])``; ``solve`` is 3x3 blocks, a Cholesky or a factor.
+
+    Attributes
+    ----------
+    idx : (m,) state entries eliminated.
+    b : (m,) their information vector at elimination.
+    C : (m, c) their information coupling to the separator ``cidx`` (dense, or CSR for
+        a rebuild).
+    cidx : (c,) separator: entries that were active when ``idx`` was eliminated.
+    Dinv : (m/3, 3, 3) features: inverses of the 3x3 information blocks ``A``.
+    chol : poses: Cholesky factor of ``A`` (``cho_factor``).
+    factor : rebuild: factorisation of the eliminated part (cannot be undone).
+    A : (m/3, 3, 3) features or (m, m) poses: the eliminated information block, kept so
+        that the elimination can be undone exactly (:meth:`IncrementalRecovery._reactivate`).
+    """
 
     idx: IntArray
     b: Array
@@ -164,6 +198,7 @@ class _Conditional:
     Dinv: Array | None = None
     chol: tuple | None = None
     factor: object | None = None
+    A: Array | None = None
 
     def apply(self, x: Array) -> None:
         r = self.b - self.C @ x[self.cidx] if len(self.cidx) else self.b.copy()
@@ -176,9 +211,11 @@ class _Conditional:
 
 
 def _scatter_add(A: Array, flat: IntArray, v: Array) -> None:
-    """``A.flat[flat] += v`` (C order) with repeated indices summed."""
+    """``A.flat[flat] += v`` (C order) with repeated indices summed, in ``O(len(v) log len(v))``
+    (not ``O(A.size)``: the window's ``P`` has up to ~10^6 entries)."""
     if len(v):
-        A += np.bincount(flat, v, minlength=A.size).reshape(A.shape)
+        u, inv = np.unique(flat, return_inverse=True)
+        A[np.unravel_index(u, A.shape)] += np.bincount(inv.ravel(), v, minlength=len(u))  # u unique
 
 
 def _spd_inverse_3x3(D: Array) -> Array:
@@ -215,9 +252,10 @@ class IncrementalRecovery:
         self._map = EntryMap()
         self._last = np.zeros(0, np.int64)  # step of the last measurement, at block starts
         self._pos = np.zeros(0, np.int64)  # position in the window, -1 once marginalised
+        self._owner = np.zeros(0, np.int64)  # slot in _conds of a marginalised entry, else -1
         self._pending: list[tuple[IntArray, Array, Array]] = []
         self._valid = False
-        self._conds: list[_Conditional] = []
+        self._conds: list[_Conditional | None] = []  # elimination order; None once undone
         self._reset_window()
 
     def _reset_window(self) -> None:
@@ -270,6 +308,7 @@ class IncrementalRecovery:
         n = self._map.n
         self._last = np.concatenate([self._last, np.full(n - len(self._last), s, np.int64)])
         self._pos = np.concatenate([self._pos, np.full(n - len(self._pos), -1, np.int64)])
+        self._owner = np.concatenate([self._owner, np.full(n - len(self._owner), -1, np.int64)])
         pending, self._pending = self._pending, []
         touched = np.concatenate([p[0].ravel() for p in pending]) if pending else np.zeros(0, np.int64)
         self._last[self._map.start[touched]] = s
@@ -277,7 +316,8 @@ class IncrementalRecovery:
             self._rebuild(info, s)
         else:
             self._append(new)
-            if np.any(self._pos[touched] < 0):
+            marg = np.unique(self._map.start[touched[self._pos[touched] < 0]])
+            if len(marg) and not self._reactivate(marg):
                 st.fallbacks += 1
                 self._rebuild(info, s)
             else:
@@ -285,6 +325,7 @@ class IncrementalRecovery:
                     self._route(idx, Lam, eta)
         self._solve()
         x[self.pidx], x[self.fidx] = self.xp, self.xf
+        st.max_window_poses = max(st.max_window_poses, len(self.pidx) // POSE_DIM)
         self._marginalise(s)
         st.window_poses, st.window_features = len(self.pidx) // POSE_DIM, len(self.fidx) // FEATURE_DIM
 
@@ -316,7 +357,8 @@ class IncrementalRecovery:
             return x  # the window changed without a solve: nothing consistent to add
         x[self.pidx], x[self.fidx] = self.xp, self.xf
         for c in reversed(self._conds):
-            c.apply(x)
+            if c is not None:
+                c.apply(x)
         return x
 
     # -- window maintenance -------------------------------------------------------------
@@ -365,7 +407,16 @@ class IncrementalRecovery:
         self.bf += np.bincount(self._pos[e[fe]], ev[fe], minlength=len(self.bf))
 
     def _solve(self) -> None:
-        """``x`` of the window: Schur complement onto the poses, dense Cholesky."""
+        """``x`` of the window: Schur complement onto the poses, dense Cholesky.
+
+        When the Cholesky factorisation fails (the pose Schur complement is numerically
+        indefinite: ``I`` itself is then too ill-conditioned for any Cholesky, the full
+        sparse solve meets negative pivots as well), the same system is solved by a
+        symmetric indefinite factorisation (Bunch-Kaufman ``LDL^T``) and the event is
+        counted in :attr:`RecoveryStats.indefinite_solves`. The window stays valid: it is
+        the exact marginal information of its states, rebuilding it would give the same
+        matrix.
+        """
         F, npw = len(self.D), len(self.pidx)
         self._Dinv = _spd_inverse_3x3(self.D) if F else np.zeros((0, 3, 3))
         B3 = self.B.reshape(F, 3, npw)
@@ -375,11 +426,16 @@ class IncrementalRecovery:
         r = self.bp - self.B.T @ Dbf
         self._S_cho, self._S_pidx = None, self.pidx.copy()
         if npw:
+            S = 0.5 * (S + S.T)
             try:
-                self._S_cho = cho_factor(0.5 * (S + S.T), lower=True, check_finite=False)
+                self._S_cho = cho_factor(S, lower=True, check_finite=False)
                 xp = cho_solve(self._S_cho, r)
             except np.linalg.LinAlgError:
-                raise EstimatorError("information matrix is singular; is the gauge fixed?") from None
+                try:
+                    xp = solve(S, r, assume_a="sym", check_finite=False)
+                except np.linalg.LinAlgError:
+                    raise EstimatorError("information matrix is singular; is the gauge fixed?") from None
+                self.stats.indefinite_solves += 1
         else:
             xp = r
         xf = Dbf - np.einsum("fij,fj->fi", self._Dinv, (self.B @ xp).reshape(F, 3)).ravel()
@@ -398,7 +454,9 @@ class IncrementalRecovery:
             Dinv_m = self._Dinv[fstale]
             self.bp -= Bm.T @ np.einsum("fij,fj->fi", Dinv_m, self.bf[rows].reshape(-1, 3)).ravel()
             nz = np.flatnonzero(np.any(Bm != 0, axis=0))
-            self._conds.append(_Conditional(self.fidx[rows], self.bf[rows], Bm[:, nz], self.pidx[nz], Dinv=Dinv_m))
+            self._conds.append(_Conditional(self.fidx[rows], self.bf[rows], Bm[:, nz], self.pidx[nz], Dinv=Dinv_m,
+                                            A=self.D[fstale]))
+            self._owner[self.fidx[rows]] = len(self._conds) - 1
             self._pos[self.fidx[rows]] = -1
             keep = ~rows
             self.B, self.bf, self.fidx = self.B[keep], self.bf[keep], self.fidx[keep]
@@ -413,17 +471,143 @@ class IncrementalRecovery:
             k = ~q
             Pqq, Pqk = self.P[np.ix_(q, q)], self.P[np.ix_(q, k)]
             bq = self.bp[q]
-            chol = cho_factor(Pqq, lower=True, check_finite=False)
+            chol = cho_factor(Pqq, lower=True, check_finite=False)  # Pqq is a copy (fancy indexing)
             self.P = self.P[np.ix_(k, k)] - Pqk.T @ cho_solve(chol, Pqk)
             self.bp = self.bp[k] - Pqk.T @ cho_solve(chol, bq)
             nz = np.flatnonzero(np.any(Pqk != 0, axis=0))
             kidx = self.pidx[k]
-            self._conds.append(_Conditional(self.pidx[q], bq, Pqk[:, nz], kidx[nz], chol=chol))
+            self._conds.append(_Conditional(self.pidx[q], bq, Pqk[:, nz], kidx[nz], chol=chol, A=Pqq))
+            self._owner[self.pidx[q]] = len(self._conds) - 1
             self._pos[self.pidx[q]] = -1
             self.pidx, self.xp, self.B = kidx, self.xp[k], self.B[:, k]
             self._pos[self.pidx] = np.arange(len(self.pidx))
             self.stats.marginalised_poses += int(pstale.sum())
         self.P = 0.5 * (self.P + self.P.T)  # keep the rounding of the Schur updates symmetric
+
+    # -- re-activation of marginalised states ---------------------------------------------
+    def _reactivate(self, blocks: IntArray) -> bool:
+        """Bring marginalised states back into the window by undoing their eliminations.
+
+        Eliminating states ``q`` with separator ``S`` (the active states they were coupled
+        to) subtracted ``C^T A^-1 C`` from the window's ``S`` block and stored the
+        conditional ``(A, C, b)``. While no measurement touches ``q``, adding back
+        ``C^T A^-1 C`` and re-inserting the rows ``[A C]`` restores the marginal
+        information of ``q`` and the window exactly, provided every state of ``S`` is
+        active again: the conditionals that eliminated them later are undone first (as
+        iSAM2 re-eliminates the path from a clique to the root of its Bayes tree).
+        Conditionals eliminated earlier that depend on ``q`` stay valid. A feature
+        batch is split: only the requested features come back. Costs
+        ``O(|S|^2 (|q| + |S|))`` per undone conditional, no access to the full ``I``.
+
+        Parameters
+        ----------
+        blocks : (k,) block starts of marginalised states to re-activate.
+
+        Returns
+        -------
+        False, with nothing changed, when a requested state lies in a rebuild
+        conditional (a sparse factorisation, which cannot be undone); True otherwise.
+        """
+        start, pos, owner = self._map.start, self._pos, self._owner
+        feats: dict[int, set[int]] = {}  # slot -> block starts of the features to bring back
+        poses: set[int] = set()  # slots of pose batches (undone whole)
+        seen: set[int] = set()
+        stack = [int(b) for b in blocks]
+        while stack:
+            b = stack.pop()
+            if b in seen:
+                continue
+            seen.add(b)
+            slot = int(owner[b])
+            c = self._conds[slot]
+            if c is None or c.A is None:  # a rebuild's factorisation (or a bookkeeping bug)
+                return False
+            if c.Dinv is not None:
+                feats.setdefault(slot, set()).add(b)
+                r = np.flatnonzero(c.idx == b)[0]
+                sep = c.cidx[np.any(c.C[r : r + FEATURE_DIM] != 0, axis=0)]
+            else:
+                if slot in poses:
+                    continue
+                poses.add(slot)
+                seen.update(int(v) for v in c.idx[::POSE_DIM])
+                sep = c.cidx
+            sep = np.unique(start[sep])
+            stack.extend(int(v) for v in sep[pos[sep] < 0])
+        n_poses = sum(len(self._conds[slot].idx) // POSE_DIM for slot in poses)
+        for slot in sorted(set(feats) | poses, reverse=True):  # latest elimination first
+            if slot in poses:
+                self._undo_poses(slot)
+            else:
+                self._undo_features(slot, np.fromiter(feats[slot], np.int64))
+        st = self.stats
+        st.reactivations += 1
+        st.reactivated_poses += n_poses
+        st.reactivated_features += sum(len(v) for v in feats.values())
+        return True
+
+    def _undo_poses(self, slot: int) -> None:
+        """Undo the elimination of the pose batch in ``_conds[slot]`` (its separator is active)."""
+        c = self._conds[slot]
+        k = self._pos[c.cidx]
+        if np.any(k < 0):
+            raise EstimatorError("internal: re-activating poses whose separator is not active")
+        q, nq = c.idx, len(c.idx)
+        p0 = len(self.pidx)
+        Y = cho_solve(c.chol, np.column_stack([c.C, c.b]), check_finite=False)
+        P = np.zeros((p0 + nq, p0 + nq))
+        P[:p0, :p0] = self.P
+        P[np.ix_(k, k)] += c.C.T @ Y[:, :-1]
+        P[p0:, p0:] = c.A
+        P[p0:, k] = c.C
+        P[k, p0:] = c.C.T
+        bp = np.concatenate([self.bp, c.b])
+        bp[k] += c.C.T @ Y[:, -1]
+        self.P, self.bp = 0.5 * (P + P.T), bp
+        self.B = np.concatenate([self.B, np.zeros((len(self.fidx), nq))], axis=1)
+        self.pidx = np.concatenate([self.pidx, q])
+        self._pos[q] = np.arange(p0, p0 + nq)
+        self._owner[q] = -1
+        self._conds[slot] = None
+
+    def _undo_features(self, slot: int, blocks: IntArray) -> None:
+        """Undo the elimination of features ``blocks`` (block starts) of the feature batch in
+        ``_conds[slot]``; the other features of the batch stay eliminated."""
+        c = self._conds[slot]
+        fb = c.idx[::FEATURE_DIM]
+        sel = np.isin(fb, blocks)
+        rows = np.repeat(sel, FEATURE_DIM)
+        Cs = c.C[rows]
+        cols = np.any(Cs != 0, axis=0)
+        k = self._pos[c.cidx[cols]]
+        if np.any(k < 0):
+            raise EstimatorError("internal: re-activating features whose poses are not active")
+        Cs = Cs[:, cols]
+        Dinv = c.Dinv[sel]
+        g = int(sel.sum())
+        DC = np.einsum("fij,fjm->fim", Dinv, Cs.reshape(g, 3, -1)).reshape(3 * g, -1)
+        Db = np.einsum("fij,fj->fi", Dinv, c.b[rows].reshape(g, 3)).ravel()
+        self.P[np.ix_(k, k)] += Cs.T @ DC
+        self.P = 0.5 * (self.P + self.P.T)
+        self.bp[k] += Cs.T @ Db
+        Bn = np.zeros((3 * g, len(self.pidx)))
+        Bn[:, k] = Cs
+        f0 = len(self.fidx)
+        idx = c.idx[rows]
+        self.B = np.concatenate([self.B, Bn])
+        self.D = np.concatenate([self.D, c.A[sel]])
+        self.bf = np.concatenate([self.bf, c.b[rows]])
+        self.fidx = np.concatenate([self.fidx, idx])
+        self._pos[idx] = np.arange(f0, f0 + 3 * g)
+        self._owner[idx] = -1
+        keep = ~rows
+        if not np.any(keep):
+            self._conds[slot] = None
+            return
+        Ck = c.C[keep]
+        nz = np.any(Ck != 0, axis=0)
+        self._conds[slot] = _Conditional(c.idx[keep], c.b[keep], Ck[:, nz], c.cidx[nz], Dinv=c.Dinv[~sel],
+                                         A=c.A[~sel])
 
     # -- rebuild from the full information --------------------------------------------------
     def _rebuild(self, info: InformationStore, s: int) -> None:
@@ -448,6 +632,7 @@ class IncrementalRecovery:
         active[fa] = active[pa] = True
         m = np.flatnonzero(~active)
         self._conds = []
+        self._owner = np.full(n, -1, np.int64)
         P = I[pa][:, pa].toarray()
         bp = i[pa].copy()
         if len(m):
@@ -459,6 +644,7 @@ class IncrementalRecovery:
             P -= np.asarray(C.T @ Y)
             bp -= C.T @ factor.solve(i[m])
             self._conds.append(_Conditional(m, i[m].copy(), C, pa, factor=factor))
+            self._owner[m] = 0
         self._pos[:] = -1
         self.pidx, self.fidx = pa, fa
         self._pos[pa] = np.arange(len(pa))
