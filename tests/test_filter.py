@@ -140,3 +140,31 @@ def test_unknown_state_is_a_clear_error():
     sc, f = run(corridor_scene, 7, noise=False, frames=4)
     with pytest.raises(EstimatorError, match="pose 99"):
         f.pose(99)
+
+
+def test_robust_smoothing_drops_a_wrong_relative_pose():
+    """A ZR/ZT whose direction is 40 degrees off (a wrong five-point solution) distorts the
+    plain smoothed estimate; robust smoothing drops it and lands near the clean answer."""
+    from eifslam.geometry import quat_exp, quat_to_rotmat
+    from eifslam.measurements import RelativePose
+
+    def solve(corrupt: bool, robust: bool):
+        rng = np.random.default_rng(7)
+        sc = corridor_scene(12, rng)
+        m = simulate(sc, rng)
+        if corrupt:
+            rp = m.relative[5]
+            t = quat_to_rotmat(quat_exp(np.array([0.0, np.radians(40.0), 0.0]))) @ rp.t_ij
+            m.relative[5] = RelativePose(rp.i, rp.j, rp.q_ij, t, rp.cov)
+        f = InformationFilter(sc.camera, FilterConfig())
+        run_filter(sc, m, f, min_parallax_deg=3.0)
+        gates = dict(feature_chi2=30.0, relative_chi2=50.0) if robust else {}
+        rep = smooth(f, max_passes=6, **gates)
+        return errors(sc, f)[0], rep
+
+    clean, _ = solve(False, False)
+    plain, _ = solve(True, False)
+    robust, rep = solve(True, True)
+    assert rep.rejected_relative == 1
+    assert plain > 3 * clean  # the wrong measurement matters ...
+    assert robust < 1.5 * clean  # ... and robust smoothing undoes it

@@ -206,3 +206,28 @@ def test_kitti_relative_poses_against_ground_truth():
         assert np.all(sd > 0) and np.degrees(sd[:3]).max() < 0.5
     assert 0.0 < np.median(rot_err) < 0.3
     assert 0.0 < np.median(dir_err) < 2.0
+
+
+@pytest.mark.parametrize("detector", ["sift", "orb"])
+def test_reobserve_finds_lost_map_tracks_where_predicted_only(texture, detector):
+    """Frame 2 shows frame 0's view again but tracking (window 1) only sees frame 1, an
+    unrelated view: every keypoint starts a new track. Guided matching with the right
+    predictions gives most map tracks their old ids back; predictions 40 px off give none."""
+    def run(offset_px: float) -> tuple[int, int, np.ndarray, np.ndarray]:
+        fe = FrontEnd(CAM, FrontEndConfig(detector=detector, match_window=1, max_features=1500))
+        a = _rotated_view(texture, 0.0)
+        fe.add_frame(a, 0)
+        fe.add_frame(_rotated_view(_texture(np.random.default_rng(1)), 0.0), 1)  # another scene
+        fe.add_frame(a.copy(), 2)
+        ids0, uv0 = fe.map_observations(0)
+        assert not np.isin(ids0, fe.frame(2).track_ids).any()  # lost by tracking
+        found = fe.reobserve(2, ids0, uv0 + offset_px, radius_px=5.0)
+        ids2, uv2 = fe.map_observations(2)
+        back = np.isin(ids2, ids0)
+        return found, len(ids0), ids2[back], uv2[back], ids0, uv0
+
+    found, n, ids_back, uv_back, ids0, uv0 = run(0.0)
+    assert 0.6 * n <= found <= n and len(ids_back) == found
+    where = {t: u for t, u in zip(ids0.tolist(), uv0)}
+    assert np.median([np.linalg.norm(where[t] - u) for t, u in zip(ids_back.tolist(), uv_back)]) < 0.5
+    assert run(40.0)[0] <= 0.02 * n

@@ -97,6 +97,38 @@ def test_repeated_frame_is_not_fused_as_a_baseline(scene_run):
     assert slam.filter.layout.n_poses == 1
 
 
+def test_frames_that_wait_for_a_baseline_are_localised_once_the_map_exists():
+    from eifslam.scene import make_scene, render_frame
+
+    scene = make_scene(n_frames=54)
+    slam = Slam(scene.camera)
+    img0 = render_frame(scene, 0)
+    slam.track(img0, 0.0)
+    waiting = slam.track(img0.copy(), 0.5)  # the same view again: no baseline yet
+    assert waiting.state is TrackingState.INITIALISING and waiting.position is None
+    for k in range(1, 4):
+        slam.track(render_frame(scene, k), float(scene.timestamps[k]) + 1.0)
+    late = slam.results[1]
+    assert late.state is TrackingState.TRACKING and late.position is not None and "waited" in late.reason
+    t, P, _ = slam.trajectory()
+    assert 0.5 in t.tolist()
+    step = np.linalg.norm(P[t == scene.timestamps[3] + 1.0] - P[0])
+    assert 0 < np.linalg.norm(P[t == 0.5] - P[0]) < 0.05 * step  # it sits where frame 0 is
+    assert slam.finish() == 0  # nothing left to retry
+
+
+def test_session_saves_after_the_recovery_window_was_rebuilt(scene_run, tmp_path):
+    from eifslam.scene import render_frame
+
+    scene, slam, idx, _ = scene_run
+    slam.filter.incremental.on_invalidate()  # the next frame rebuilds the window (factorisations)
+    slam.track(render_frame(scene, 12), float(scene.timestamps[12]))
+    slam.save(tmp_path / "s.pkl")
+    back = Slam.load(tmp_path / "s.pkl")
+    np.testing.assert_allclose(back.filter.x, slam.filter.x, atol=1e-12)
+    assert back.track(render_frame(scene, 13), float(scene.timestamps[13])).state is TrackingState.TRACKING
+
+
 @pytest.mark.skipif(not (DATASETS / "kitti-seq1").is_dir(), reason="../shared/datasets/kitti-seq1 is absent")
 def test_kitti_first_frames_against_ground_truth():
     from eifslam.evaluation import evaluate

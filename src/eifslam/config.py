@@ -48,6 +48,15 @@ class SystemConfig:
         A ``ZR``/``ZT`` pair whose normalised innovation squared (5 DOF) at the pose the
         known map supports exceeds this is not fused (a wrong five-point solution or an
         overconfident covariance); ``None`` fuses every pair.
+    robust_smoothing : bool
+        Smoothing drops, between passes, the ``Zm`` that fail the filter's ``gate_chi2``
+        and the ``ZR``/``ZT`` that fail ``relative_gate_chi2`` at the smoothed estimate
+        (:func:`eifslam.smoothing.reject_outliers`); False relinearises every fused one.
+    reobserve_radius_px : float
+        Map features that frame-to-frame tracking lost are searched for again in each
+        new frame within this many pixels of where the pose guess projects them
+        (descriptor ratio test; 0 turns it off). This keeps map features alive across
+        occlusions and revisits, which holds the scale.
     recovery : {"incremental", "full"}
         Per-frame state recovery: exact over an active window with the rest marginalised
         (paper III-G, :mod:`eifslam.incremental`), or the full sparse solve.
@@ -68,6 +77,8 @@ class SystemConfig:
     recovery: str = "incremental"
     window: int = 5
     relative_gate_chi2: float | None = 50.0
+    robust_smoothing: bool = True
+    reobserve_radius_px: float = 15.0
 
     def __post_init__(self) -> None:
         if self.mode not in ("filter", "smooth", "ba"):
@@ -85,6 +96,8 @@ class SystemConfig:
             raise ConfigError("system.relocalise_candidates must be >= 0")
         if not 0.0 <= self.init_parallax_deg < 90.0:
             raise ConfigError("system.init_parallax_deg must be in [0, 90)")
+        if not self.reobserve_radius_px >= 0:
+            raise ConfigError("system.reobserve_radius_px must be >= 0")
         for key in ("min_feature_parallax_deg", "sigma_px", "scale_distance"):
             v = getattr(self, key)
             if not (isinstance(v, (int, float)) and v > 0):

@@ -311,9 +311,35 @@ class Slam:
         if sol is None:
             return False
         p, q, _ = sol
+        self._reobserve(k, p, q)
         filt.add_pose(k, p, q)
         self._fuse_map_and_recover(k, t0, timings)
         return True
+
+    def _reobserve(self, k: int, p: Array, q: Array) -> int:
+        """Find map features that tracking lost again in frame *k*, by projecting them
+        with the pose guess ``(p, q)`` and matching descriptors nearby
+        (:meth:`FrontEnd.reobserve`); returns how many were found."""
+        from .models import feature_model
+
+        r = self.config.system.reobserve_radius_px
+        filt = self.filter
+        if not r or filt.layout.n_features == 0:
+            return 0
+        fids, X = filt.features()
+        fids = np.asarray(fids, np.int64)
+        seen, _ = self.frontend.map_observations(k)
+        cand = ~np.isin(fids, seen)
+        if not cand.any():
+            return 0
+        fids, X = fids[cand], X[cand]
+        c, N = self.camera, len(fids)
+        h, _, _, z = feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X, c.fx, c.fy, c.cx, c.cy)
+        vis = (z > filt.config.min_depth) & np.all(np.isfinite(h), 1) & (h[:, 0] >= 0) & (h[:, 1] >= 0) \
+            & (h[:, 0] <= c.width - 1) & (h[:, 1] <= c.height - 1)
+        if not vis.any():
+            return 0
+        return self.frontend.reobserve(k, fids[vis], h[vis], r)
 
     def _fuse_map_and_recover(self, k: int, t0: float, timings: dict) -> None:
         """Algorithm 1 steps 3-5 for a frame whose pose is in the state: new features,
@@ -353,12 +379,19 @@ class Slam:
         use_relative, refined = True, False
         if known.sum() >= 12:  # a better linearisation point: refine on the known map
             sol = localise_pose(self.camera, p_k, q_k, Xk, uv[known])
+            frac = sol[2].mean() if sol is not None else 0.0
             if sol is not None and _agrees(p_i, p_k, q_k, sol, max_rot_deg=2.0, max_dir_deg=10.0):
-                p_k, q_k, refined = sol[0], sol[1], sol[2].mean() >= 0.7
-            elif sol is not None and sol[2].mean() > 1.5 * _inlier_fraction(self.camera, p_k, q_k, Xk, uv[known]):
+                p_k, q_k, refined = sol[0], sol[1], frac >= 0.7
+            elif sol is not None and frac > 1.5 * _inlier_fraction(self.camera, p_k, q_k, Xk, uv[known]):
                 # the map contradicts this relative pose: trust the map, drop the ZR/ZT
                 p_k, q_k, use_relative = sol[0], sol[1], False
                 self.rejected_relative.append(rp)
+            elif sol is not None and frac >= 0.7:
+                # the map fits well where the relative pose points elsewhere (on a short
+                # baseline both guesses fit the map): linearise at the map's pose and let
+                # the chi-square gate below decide on the ZR/ZT
+                p_k, q_k, refined = sol[0], sol[1], True
+        self._reobserve(k, p_k, q_k)
         filt.add_pose(k, p_k, q_k)
         if first_step:
             filt.set_scale(rp.i, k, sysc.scale_distance)
@@ -395,15 +428,39 @@ class Slam:
             for (t, _, u, hist), Xt, good in zip(items, X, ok & (par >= sysc.feature_parallax_deg)):
                 if not good:
                     continue
+                fr = np.array([jj for jj, _ in hist] + [k])
+                zs = np.array([vv for _, vv in hist] + [u])
+                fits = self._fits(Xt, fr, zs)
+                if not (fits[0] and fits[-1]):
+                    # the triangulating pair itself fails the gate: the feature would
+                    # enter with single-view (rank-2) information; leave it out
+                    continue
                 new_ids.append(t)
                 new_X.append(Xt)
-                poses.append(np.array([jj for jj, _ in hist] + [k]))
-                feats.append(np.full(len(hist) + 1, t))
-                uvs.append(np.array([vv for _, vv in hist] + [u]))
+                poses.append(fr[fits])
+                feats.append(np.full(int(fits.sum()), t))
+                uvs.append(zs[fits])
         if new_ids:
             filt.add_features(new_ids, np.array(new_X))
         return FeatureObservations.make(np.concatenate(poses), np.concatenate(feats),
                                         np.concatenate(uvs).reshape(-1, 2), sysc.sigma_px)
+
+    def _fits(self, X: Array, frames: NDArray[np.int64], uv: Array) -> NDArray[np.bool_]:
+        """Which observations ``uv`` (N, 2) from poses ``frames`` (N,) of a point ``X``
+        (3,) pass the filter's gate (in front of the camera, normalised innovation squared
+        within ``gate_chi2``): the ones :meth:`InformationFilter.fuse_features` would take."""
+        from .models import feature_model
+
+        filt, c = self.filter, self.camera
+        cols = filt.layout.pose_columns(frames)
+        x = filt.x
+        h, _, _, z = feature_model(x[cols[:, :3]], x[cols[:, 3:]], np.broadcast_to(X, (len(frames), 3)),
+                                   c.fx, c.fy, c.cx, c.cy)
+        chi2 = np.sum((uv - h) ** 2, 1) / self.config.system.sigma_px**2
+        ok = (z > filt.config.min_depth) & np.isfinite(chi2)
+        if filt.config.gate_chi2 is not None:
+            ok &= chi2 <= filt.config.gate_chi2
+        return ok
 
     # -- after the run ------------------------------------------------------------
     def smooth(self, max_passes: int | None = None) -> SmoothingReport:
@@ -411,7 +468,10 @@ class Slam:
         if self.filter.layout.n_poses < 2:
             raise EifslamError("nothing to smooth: fewer than two poses are tracked")
         self.filter.complete_estimate()
-        self.smoothing = smooth(self.filter, max_passes or self.config.system.smooth_passes)
+        sysc = self.config.system
+        gates = dict(feature_chi2=self.filter.config.gate_chi2, relative_chi2=sysc.relative_gate_chi2) \
+            if sysc.robust_smoothing else {}
+        self.smoothing = smooth(self.filter, max_passes or sysc.smooth_passes, **gates)
         return self.smoothing
 
     def set_scale(self, a: tuple[str, int], b: tuple[str, int], length: float) -> float:

@@ -67,6 +67,8 @@ class FrontEnd:
         self._frames: dict[int, _Frame] = {}
         self._desc: dict[int, NDArray] = {}
         self._order: list[int] = []
+        self._last_frame = np.zeros(0, np.int64)  # per raw track id: last frame seen in
+        self._last_kp = np.zeros(0, np.int64)  # ... and the keypoint index there
 
     # ------------------------------------------------------------------ queries
     @property
@@ -185,6 +187,7 @@ class FrontEnd:
         in_map = assign_to_map(feats.sign[new], feats.response[new], self.config.map_fraction)
         ids[new] = self._tracks.allocate(in_map)
         self._tracks.observe(ids)
+        self._note_last_seen(fid, ids)
         self._frames[fid] = _Frame(feats, ids)
         self._desc[fid] = feats.descriptors
         self._order.append(fid)
@@ -226,6 +229,83 @@ class FrontEnd:
         )
         ids[free_new[ia]] = pid[free_old[ib]]
         return int(len(ia))
+
+    def _note_last_seen(self, fid: int, ids: IntArray) -> None:
+        n = len(self._tracks)
+        if len(self._last_frame) < n:
+            grow = n - len(self._last_frame)
+            self._last_frame = np.concatenate([self._last_frame, np.full(grow, -1, np.int64)])
+            self._last_kp = np.concatenate([self._last_kp, np.full(grow, -1, np.int64)])
+        self._last_frame[ids] = fid
+        self._last_kp[ids] = np.arange(len(ids))
+
+    def reobserve(self, frame_id: int, track_ids: IntArray, uv_predicted: Array, radius_px: float,
+                  ratio: float | None = None) -> int:
+        """Guided matching: find known ``Ωm`` tracks again in a frame where tracking lost them.
+
+        Each track's descriptor (from its last observation) is compared with the frame's
+        keypoints within ``radius_px`` of where the track is predicted; the best one is
+        taken when it passes the ratio test against the second best (within the radius,
+        else in the whole frame) and started a new ``Ωm`` track in this frame, which is
+        then merged into the old track (so the map feature gets this measurement and the
+        keypoint's measurements are never used twice).
+
+        Parameters
+        ----------
+        frame_id : int
+            A stored frame with descriptors.
+        track_ids : (M,) int64
+            ``Ωm`` track ids (current identities) not seen in the frame.
+        uv_predicted : (M, 2)
+            Undistorted pixels where each track is expected in the frame.
+        radius_px : float
+            Search radius, pixels.
+        ratio : float, optional
+            Ratio-test threshold (default: the matcher's).
+
+        Returns
+        -------
+        int
+            How many tracks were found again.
+        """
+        fid = int(frame_id)
+        fr = self._get(fid)
+        track_ids = np.asarray(track_ids, np.int64).reshape(-1)
+        uv_predicted = np.asarray(uv_predicted, float).reshape(-1, 2)
+        if len(track_ids) == 0 or fid not in self._desc or len(fr.feats) < 2:
+            return 0
+        ratio = self._matcher.ratio if ratio is None else float(ratio)
+        lf, lk = self._last_frame[track_ids], self._last_kp[track_ids]
+        have = (lf >= 0) & (lf != fid) & np.isin(lf, list(self._desc))
+        track_ids, uv_predicted, lf, lk = track_ids[have], uv_predicted[have], lf[have], lk[have]
+        if len(track_ids) == 0:
+            return 0
+        D = np.stack([self._desc[int(f)][int(k)] for f, k in zip(lf, lk)])
+        Dk = self._desc[fid]
+        dist = _descriptor_distances(D.astype(Dk.dtype), Dk)
+        near = np.linalg.norm(uv_predicted[:, None, :] - fr.feats.uv[None, :, :], axis=2) <= radius_px
+        big = np.float32(np.inf)
+        rows = np.arange(len(dist))
+        best = np.argmin(np.where(near, dist, big), axis=1)
+        d1 = np.where(near[rows, best], dist[rows, best], big)
+        # Lowe's ratio against the nearest other keypoint anywhere in the frame: the radius
+        # only chooses the candidate, the descriptor must be distinctive in the whole image
+        others = dist.copy()
+        others[rows, best] = big
+        ok = np.isfinite(d1) & (d1 < ratio * others.min(axis=1))
+        kid = self._tracks.resolve(fr.raw_ids)
+        fresh = self._tracks.in_map(kid) & (self._tracks.length(kid) == 1)
+        ok &= fresh[best]
+        # a keypoint goes to one track only: the closest descriptor wins
+        cand = np.flatnonzero(ok)
+        cand = cand[np.argsort(d1[cand])]
+        _, first = np.unique(best[cand], return_index=True)
+        found = 0
+        for i in cand[np.sort(first)]:
+            if self._tracks.merge(int(track_ids[i]), int(kid[best[i]])):
+                self._last_frame[track_ids[i]], self._last_kp[track_ids[i]] = fid, best[i]
+                found += 1
+        return found
 
     def relocalise(self, frame_id: int, candidate_frame_ids) -> list[tuple[int, int]]:
         """Match a frame against older stored frames and merge the matched tracks.
@@ -283,6 +363,18 @@ class FrontEnd:
         track ids stay available)."""
         self._get(frame_id)
         self._desc.pop(int(frame_id), None)
+
+
+def _descriptor_distances(a: NDArray, b: NDArray) -> NDArray[np.float32]:
+    """All distances between descriptor rows ``a (M, D)`` and ``b (K, D)``: Hamming for
+    binary (uint8) descriptors, Euclidean otherwise; (M, K) float32."""
+    if a.dtype == np.uint8:
+        A = np.unpackbits(a, axis=1).astype(np.float32)
+        B = np.unpackbits(b, axis=1).astype(np.float32)
+        return A.sum(1)[:, None] + B.sum(1)[None, :] - 2.0 * (A @ B.T)
+    A, B = a.astype(np.float32), b.astype(np.float32)
+    d2 = (A * A).sum(1)[:, None] + (B * B).sum(1)[None, :] - 2.0 * (A @ B.T)
+    return np.sqrt(np.maximum(d2, 0.0))
 
 
 def set_opencv_threads(n: int) -> None:
