@@ -126,10 +126,13 @@ class SlamConfig:
     """Front end, filter and system settings."""
 
     # the system's front-end defaults (measured on the shared data sets, docs/system.md):
-    # more features, SIFT's 3 layers per octave, and tracks matched over the last 3 frames
+    # more features, SIFT's 3 layers per octave, tracks matched over the last 3 frames, and
+    # half of the new tracks kept in the map (docs/split_study.md)
     frontend: FrontEndConfig = field(
-        default_factory=lambda: FrontEndConfig(max_features=2000, sift_octave_layers=3, match_window=3))
-    filter: FilterConfig = field(default_factory=lambda: FilterConfig(gate_chi2=30.0))
+        default_factory=lambda: FrontEndConfig(max_features=2000, sift_octave_layers=3, match_window=3,
+                                               map_fraction=0.5))
+    # Zm gate: 99% of chi-square with 2 DOF at sigma_px (docs/system.md)
+    filter: FilterConfig = field(default_factory=lambda: FilterConfig(gate_chi2=9.21))
     system: SystemConfig = field(default_factory=SystemConfig)
 
     @classmethod

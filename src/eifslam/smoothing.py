@@ -107,7 +107,7 @@ def reject_outliers(filt: InformationFilter, feature_chi2: float | None, relativ
             return 0, int(drop.sum())
     if feature_chi2 is not None and len(obs):
         _, _, _, _, _, chi2 = filt.linearise_features(obs, gate=False)
-        keep = chi2 <= feature_chi2  # inf (behind the camera) fails too
+        keep = np.isfinite(chi2) & (chi2 <= feature_chi2)  # behind a camera (inf) fails too
         n_f = int(len(obs) - keep.sum())
         if n_f:
             filt.store.features = [obs.subset(keep)]
@@ -152,7 +152,8 @@ def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
         At most this many passes per round (default 5).
     tol : float
         Stop when the largest change of any state entry, relative to the scale of the
-        map (``max(1, scale prior length)``), is below ``tol``.
+        map (``max(1, scale prior length)``), is below ``tol``, or when an undamped pass
+        lowers the cost by less than 1%.
     feature_chi2, relative_chi2 : float or None
         Gates of :func:`reject_outliers` (``None``: keep every measurement of that kind).
     max_rounds : int
@@ -161,8 +162,11 @@ def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
     if max_passes < 1:
         raise EstimatorError("smoothing needs at least one pass")
     rep = SmoothingReport()
+    robust = feature_chi2 is not None or relative_chi2 is not None
+    if robust:  # Zm that cannot be linearised (behind a camera) only distort the cost
+        rep.rejected_features += reject_outliers(filt, np.inf, None)[0]
     _passes(filt, max_passes, tol, rep)
-    if feature_chi2 is not None or relative_chi2 is not None:
+    if robust:
         for _ in range(max_rounds):
             n_f, n_r = reject_outliers(filt, feature_chi2, relative_chi2)
             rep.rejected_features += n_f
@@ -174,7 +178,8 @@ def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
     return rep
 
 
-def _passes(filt: InformationFilter, max_passes: int, tol: float, rep: SmoothingReport) -> None:
+def _passes(filt: InformationFilter, max_passes: int, tol: float, rep: SmoothingReport,
+            cost_tol: float = 1e-2) -> None:
     """Gauss-Newton passes with the Levenberg-Marquardt safeguard (see :func:`smooth`)."""
     ref = 1.0 if filt.priors.scale is None else max(1.0, filt.priors.scale[2])
     cost = measurement_cost(filt)
@@ -205,7 +210,7 @@ def _passes(filt: InformationFilter, max_passes: int, tol: float, rep: Smoothing
         rep.costs.append(cost)
         norm = float(np.max(np.abs(filt.x - before))) if filt.dim else 0.0
         rep.step_norms.append(norm)
-        if norm <= tol * ref:
+        if norm <= tol * ref or (lam == 0.0 and rep.costs[-2] - cost <= cost_tol * rep.costs[-2]):
             rep.converged = True
             break
 

@@ -36,7 +36,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
-def make_config(args: argparse.Namespace, map_fraction: float = 0.3, max_features: int | None = None) -> SlamConfig:
+def make_config(args: argparse.Namespace, map_fraction: float = 0.5, max_features: int | None = None) -> SlamConfig:
     """The configuration the command-line options ask for (defaults given by the command)."""
     frac = map_fraction if args.map_fraction is None else args.map_fraction
     if not 0.0 < frac <= 1.0:
