@@ -82,6 +82,11 @@ class FrontEndConfig:
     ut_max_points : int >= 5
         The UT uses at most this many inliers (evenly subsampled) to bound its cost; the
         covariance is then scaled by ``n_used / n_inliers``.
+    seed : int or None
+        Seed of OpenCV's random generator, set when a front end is made (FLANN's
+        randomised k-d trees and the RANSAC samplers draw from it), so that a run is
+        repeatable; None leaves it alone. A different seed is a different run: on long
+        sequences the results of runs differ by more than small configuration changes do.
     """
 
     # features
@@ -110,6 +115,8 @@ class FrontEndConfig:
     sigma_px: float = 1.0
     covariance: str = "fast"
     ut_max_points: int = 300
+    # repeatability
+    seed: int | None = 0
 
     def __post_init__(self) -> None:
         def bad(key: str, msg: str) -> ConfigError:

@@ -61,6 +61,8 @@ class FrontEnd:
     def __init__(self, camera: PinholeCamera, config: FrontEndConfig = FrontEndConfig()) -> None:
         self.camera = camera
         self.config = config
+        if config.seed is not None:
+            cv2.setRNGSeed(int(config.seed))
         self._detector = make_detector(config)
         self._matcher = DescriptorMatcher(config.ratio, config.mutual)
         self._tracks = TrackStore()
