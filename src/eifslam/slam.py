@@ -201,15 +201,17 @@ class Slam:
         return [r.frame_id for r in self.results
                 if r.frame_id > 0 and not self.filter.layout.has_pose(r.frame_id)]
 
-    def _retry(self, j: int, reason: str) -> bool:
-        """Localise an earlier frame *j* that has no pose: from the map alone, else from a
-        relative pose to the nearest known poses. On success the frame's
-        :class:`TrackResult` is updated in place (``reason`` says why it was late)."""
+    def _retry(self, j: int, reason: str, relative: bool = True) -> bool:
+        """Localise an earlier frame *j* that has no pose: from the map alone, else (with
+        ``relative``) from a relative pose to the nearest known poses. On success the
+        frame's :class:`TrackResult` is updated in place (``reason`` says why it was late)."""
         timings: dict[str, float] = {}
         last_step = self._last_step
         try:
             if self._localise_from_map(j, timings):
                 ref = None
+            elif not relative:
+                return False
             else:
                 rp, _ = self._find_reference(j, timings, relocalise=False)
                 if rp is None:
@@ -227,17 +229,18 @@ class Slam:
                                       map_features=self.filter.layout.n_features, state_dim=self.filter.dim)
         return True
 
-    def finish(self, max_passes: int = 2) -> int:
+    def finish(self, max_passes: int = 3) -> int:
         """Give every frame without a pose one more chance against the final map (an
         offline step, run by ``eifslam run`` before smoothing): frames lost on the way, and
         frames that waited for the first baseline. Returns how many frames it added."""
         added = 0
         if self.filter.layout.n_poses < 2:
             return 0
-        for _ in range(max_passes):
-            new = sum(self._retry(j, "localised after the run, against the final map") for j in self._untracked())
+        for n in range(max_passes):  # the map first; relative poses once the map is exhausted
+            new = sum(self._retry(j, "localised after the run, against the final map", relative=n > 0)
+                      for j in self._untracked())
             added += new
-            if new == 0:
+            if new == 0 and n > 0:
                 break
         if added:
             self.filter.recover_active()
@@ -253,8 +256,10 @@ class Slam:
         elif res.state is TrackingState.TRACKING and self._waiting and self.filter.layout.n_poses >= 2:
             # the map now exists: the frames that waited for a baseline are localised on it,
             # nearest to the new frame first (they share the most features with it)
+            # (from the map only: a waiting frame is, by definition, on a short baseline to
+            # its neighbours, and its ZR/ZT would be poor; finish() tries those later)
             for j in sorted(self._waiting, reverse=True):
-                self._retry(j, "localised once the map was initialised (waited for a baseline)")
+                self._retry(j, "localised once the map was initialised (waited for a baseline)", relative=False)
             self._waiting = []
         res.timings_ms["total"] = 1e3 * (time.perf_counter() - t0)
         res.map_features = self.filter.layout.n_features

@@ -52,7 +52,7 @@ def main(args: argparse.Namespace) -> int:
     print(f"eifslam: rendering the built-in scene ({args.frames} images) into {data}", file=sys.stderr)
     render_scene(scene, data, noise_sigma=args.noise, blur_sigma=args.blur)
     seq = open_source(data)
-    # a denser map than the paper's 30% by default: the box ratio is measured from the
+    # a denser map than run's 2000 features: the box ratio is measured from the
     # features on one small face (0.28 m x 0.35 m), see docs/demo.md
     rep = run_sequence(seq, make_config(args, map_fraction=0.5, max_features=4000), args.out, max_frames=args.max_frames, html=not args.no_html)
     if rep.get("frames_tracked", 0) >= 3:

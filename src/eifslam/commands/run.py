@@ -17,7 +17,7 @@ def add_common_options(p: argparse.ArgumentParser) -> None:
                    help="filter only, filter + relinearise + smooth (default), or filter + full bundle adjustment")
     p.add_argument("--features", choices=["sift", "orb", "akaze", "surf"], default="sift", help="feature detector")
     p.add_argument("--map-fraction", type=float, default=None,
-                   help="fraction of tracks kept in the map (Ωm); default 0.3 as in the paper (demo: 0.5)")
+                   help="fraction of tracks kept in the map (Ωm); default 0.5, measured (the paper kept 0.3)")
     p.add_argument("--max-features", type=int, default=None,
                    help="features detected per image (default 2000; demo: 4000)")
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames")
