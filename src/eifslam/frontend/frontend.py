@@ -245,12 +245,12 @@ class FrontEnd:
                   ratio: float | None = None) -> int:
         """Guided matching: find known ``Ωm`` tracks again in a frame where tracking lost them.
 
-        Each track's descriptor (from its last observation) is compared with the frame's
-        keypoints within ``radius_px`` of where the track is predicted; the best one is
-        taken when it passes the ratio test against the second best (within the radius,
-        else in the whole frame) and started a new ``Ωm`` track in this frame, which is
-        then merged into the old track (so the map feature gets this measurement and the
-        keypoint's measurements are never used twice).
+        Each track's descriptor (from its last observation) is matched against all the
+        frame's keypoints (the front end's matcher: FLANN or Hamming); the nearest is
+        taken when it passes the ratio test against the second nearest, lies within
+        ``radius_px`` of where the track is predicted, and started a new ``Ωm`` track in
+        this frame, which is then merged into the old track (so the map feature gets this
+        measurement and the keypoint's measurements are never used twice).
 
         Parameters
         ----------
@@ -284,17 +284,13 @@ class FrontEnd:
             return 0
         D = np.stack([self._desc[int(f)][int(k)] for f, k in zip(lf, lk)])
         Dk = self._desc[fid]
-        dist = _descriptor_distances(D.astype(Dk.dtype), Dk)
-        near = np.linalg.norm(uv_predicted[:, None, :] - fr.feats.uv[None, :, :], axis=2) <= radius_px
-        big = np.float32(np.inf)
-        rows = np.arange(len(dist))
-        best = np.argmin(np.where(near, dist, big), axis=1)
-        d1 = np.where(near[rows, best], dist[rows, best], big)
-        # Lowe's ratio against the nearest other keypoint anywhere in the frame: the radius
-        # only chooses the candidate, the descriptor must be distinctive in the whole image
-        others = dist.copy()
-        others[rows, best] = big
-        ok = np.isfinite(d1) & (d1 < ratio * others.min(axis=1))
+        # Lowe's ratio test over the whole frame (the radius only checks where the nearest
+        # descriptor is): nearest and second-nearest keypoint of each track's descriptor
+        knn = self._matcher._knn(D.astype(Dk.dtype), Dk, 2)
+        best = np.array([m[0].trainIdx if len(m) == 2 else 0 for m in knn], np.int64)
+        d1 = np.array([m[0].distance if len(m) == 2 else np.inf for m in knn])
+        d2 = np.array([m[1].distance if len(m) == 2 else 0.0 for m in knn])
+        ok = (d1 < ratio * d2) & (np.linalg.norm(fr.feats.uv[best] - uv_predicted, axis=1) <= radius_px)
         kid = self._tracks.resolve(fr.raw_ids)
         fresh = self._tracks.in_map(kid) & (self._tracks.length(kid) == 1)
         ok &= fresh[best]
@@ -365,18 +361,6 @@ class FrontEnd:
         track ids stay available)."""
         self._get(frame_id)
         self._desc.pop(int(frame_id), None)
-
-
-def _descriptor_distances(a: NDArray, b: NDArray) -> NDArray[np.float32]:
-    """All distances between descriptor rows ``a (M, D)`` and ``b (K, D)``: Hamming for
-    binary (uint8) descriptors, Euclidean otherwise; (M, K) float32."""
-    if a.dtype == np.uint8:
-        A = np.unpackbits(a, axis=1).astype(np.float32)
-        B = np.unpackbits(b, axis=1).astype(np.float32)
-        return A.sum(1)[:, None] + B.sum(1)[None, :] - 2.0 * (A @ B.T)
-    A, B = a.astype(np.float32), b.astype(np.float32)
-    d2 = (A * A).sum(1)[:, None] + (B * B).sum(1)[None, :] - 2.0 * (A @ B.T)
-    return np.sqrt(np.maximum(d2, 0.0))
 
 
 def set_opencv_threads(n: int) -> None:
