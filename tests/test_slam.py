@@ -182,3 +182,22 @@ def test_cli_bad_calibration_is_one_line(tmp_path, capsys):
     assert rc == 1 and len(err) == 1 and "camera.yaml" in err[0]
     rc = cli_main(["run", str(tmp_path / "missing"), "--out", str(tmp_path / "o")])
     assert rc == 1
+
+
+def test_runs_repeat_with_the_same_seed_and_bad_settings_are_named():
+    from eifslam.scene import make_scene, render_frame
+
+    scene = make_scene(n_frames=54)
+    images = [render_frame(scene, k) for k in range(4)]
+
+    def run() -> np.ndarray:
+        slam = Slam(scene.camera, SlamConfig.from_dict({"frontend": {"seed": 3}}))
+        for k, im in enumerate(images):
+            slam.track(im, float(scene.timestamps[k]))
+        return slam.trajectory()[1]
+
+    np.testing.assert_array_equal(run(), run())
+    with pytest.raises(ConfigError, match="reobserve_radius_px"):
+        SlamConfig.from_dict({"system": {"reobserve_radius_px": -1}})
+    with pytest.raises(ConfigError, match="init_parallax_deg"):
+        SlamConfig.from_dict({"system": {"init_parallax_deg": 95}})
