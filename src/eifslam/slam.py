@@ -327,7 +327,7 @@ class Slam:
         (:meth:`FrontEnd.reobserve`); returns how many were found."""
         from .models import feature_model
 
-        r = self.config.system.reobserve_radius_px
+        r = self.config.reobserve_px
         filt = self.filter
         if not r or filt.layout.n_features == 0:
             return 0
@@ -448,7 +448,7 @@ class Slam:
         if new_ids:
             filt.add_features(new_ids, np.array(new_X))
         return FeatureObservations.make(np.concatenate(poses), np.concatenate(feats),
-                                        np.concatenate(uvs).reshape(-1, 2), sysc.sigma_px)
+                                        np.concatenate(uvs).reshape(-1, 2), self.config.zm_sigma_px)
 
     def _fits(self, X: Array, frames: NDArray[np.int64], uv: Array) -> NDArray[np.bool_]:
         """Which observations ``uv`` (N, 2) from poses ``frames`` (N,) of a point ``X``
@@ -461,7 +461,7 @@ class Slam:
         x = filt.x
         h, _, _, z = feature_model(x[cols[:, :3]], x[cols[:, 3:]], np.broadcast_to(X, (len(frames), 3)),
                                    c.fx, c.fy, c.cx, c.cy)
-        chi2 = np.sum((uv - h) ** 2, 1) / self.config.system.sigma_px**2
+        chi2 = np.sum((uv - h) ** 2, 1) / self.config.zm_sigma_px**2
         ok = (z > filt.config.min_depth) & np.isfinite(chi2)
         if filt.config.gate_chi2 is not None:
             ok &= chi2 <= filt.config.gate_chi2
