@@ -473,7 +473,7 @@ def bundle_adjust_slam(slam, config: BAConfig | None = None) -> BAResult:
         where = {int(f): k for k, f in enumerate(fids)}
         if fa in where and fb in where:
             gauge = (where[fa], where[fb])
-    obs = observations_from_frontend(slam.frontend, fids, slam.config.system.sigma_px)
+    obs = observations_from_frontend(slam.frontend, fids, slam.config.zm_sigma_px)
     res = bundle_adjust(slam.camera, fids, P, Q, obs, config, gauge)
     lay = filt.layout
     for f, p, q in zip(res.frame_ids, res.positions, res.quats):
