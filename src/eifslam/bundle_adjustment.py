@@ -463,6 +463,7 @@ def bundle_adjust_slam(slam, config: BAConfig | None = None) -> BAResult:
     prior when there is one (else the first two poses).
     """
     filt = slam.filter
+    filt.complete_estimate()  # every state at the filter's solution before BA starts from it
     ids, P, Q = filt.poses()
     order = np.argsort(ids)
     fids = np.asarray(ids, np.int64)[order]
@@ -482,6 +483,10 @@ def bundle_adjust_slam(slam, config: BAConfig | None = None) -> BAResult:
     in_map = lay.has_features(res.track_ids)
     if in_map.any():
         filt.x[lay.feature_columns(res.track_ids[in_map])] = res.points[in_map]
+    if filt.incremental is not None:
+        # the window's back-substitution (complete_estimate) would put the filter's
+        # answer back over BA's
+        filt.incremental.on_invalidate()
     return res
 
 
