@@ -425,17 +425,21 @@ class Slam:
             hist = [(j, v) for j, v in self._track_obs.get(t, []) if j != k and filt.layout.has_pose(j)]
             if hist:
                 cand.setdefault(hist[0][0], []).append((t, hist[0][1], u, hist))
+        tri: list[tuple[int, Array, NDArray[np.int64], Array]] = []  # (track, X, frames, uv)
         for j, items in cand.items():
             p_j, q_j = filt.pose(j)
             uv_j = np.array([it[1] for it in items])
             uv_k = np.array([it[2] for it in items])
             X, par, ok = triangulate(p_j, q_j, uv_j, p_k, q_k, uv_k, self.camera)
             for (t, _, u, hist), Xt, good in zip(items, X, ok & (par >= sysc.feature_parallax_deg)):
-                if not good:
-                    continue
-                fr = np.array([jj for jj, _ in hist] + [k])
-                zs = np.array([vv for _, vv in hist] + [u])
-                fits = self._fits(Xt, fr, zs)
+                if good:
+                    tri.append((t, Xt, np.array([jj for jj, _ in hist] + [k]), np.array([vv for _, vv in hist] + [u])))
+        if tri:
+            counts = np.array([len(fr) for _, _, fr, _ in tri])
+            fits_all = self._fits(np.repeat(np.array([X for _, X, _, _ in tri]), counts, axis=0),
+                                  np.concatenate([fr for _, _, fr, _ in tri]),
+                                  np.concatenate([z for _, _, _, z in tri]))
+            for (t, Xt, fr, zs), fits in zip(tri, np.split(fits_all, np.cumsum(counts)[:-1])):
                 if not (fits[0] and fits[-1]):
                     # the triangulating pair itself fails the gate: the feature would
                     # enter with single-view (rank-2) information; leave it out
@@ -451,15 +455,16 @@ class Slam:
                                         np.concatenate(uvs).reshape(-1, 2), self.config.zm_sigma_px)
 
     def _fits(self, X: Array, frames: NDArray[np.int64], uv: Array) -> NDArray[np.bool_]:
-        """Which observations ``uv`` (N, 2) from poses ``frames`` (N,) of a point ``X``
-        (3,) pass the filter's gate (in front of the camera, normalised innovation squared
-        within ``gate_chi2``): the ones :meth:`InformationFilter.fuse_features` would take."""
+        """Which observations ``uv`` (N, 2) from poses ``frames`` (N,) of points ``X``
+        (N, 3) pass the filter's gate (in front of the camera, normalised innovation
+        squared within ``gate_chi2``): the ones :meth:`InformationFilter.fuse_features`
+        would take."""
         from .models import feature_model
 
         filt, c = self.filter, self.camera
         cols = filt.layout.pose_columns(frames)
         x = filt.x
-        h, _, _, z = feature_model(x[cols[:, :3]], x[cols[:, 3:]], np.broadcast_to(X, (len(frames), 3)),
+        h, _, _, z = feature_model(x[cols[:, :3]], x[cols[:, 3:]], np.asarray(X, float).reshape(-1, 3),
                                    c.fx, c.fy, c.cx, c.cy)
         chi2 = np.sum((uv - h) ** 2, 1) / self.config.zm_sigma_px**2
         ok = (z > filt.config.min_depth) & np.isfinite(chi2)
