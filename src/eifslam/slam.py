@@ -49,14 +49,21 @@ def _agrees(p_i: Array, p_k: Array, q_k: Array, sol, max_rot_deg: float, max_dir
     return bool(rot <= max_rot_deg and cosang >= np.cos(np.radians(max_dir_deg)) and inl.mean() >= 0.5)
 
 
-def _inlier_fraction(camera: PinholeCamera, p: Array, q: Array, X: Array, uv: Array, px: float = 4.0) -> float:
-    """Fraction of known features ``X`` (N, 3) that pose ``(p, q)`` projects within ``px``
-    pixels of their measurements ``uv`` (N, 2)."""
+def _project(camera: PinholeCamera, p: Array, q: Array, X: Array) -> tuple[Array, Array]:
+    """Pixels ``(N, 2)`` and depths ``(N,)`` of world points ``X`` (N, 3) seen from poses
+    ``p`` (3,) or (N, 3), ``q`` (4,) or (N, 4) (the ``Zm`` model)."""
     from .models import feature_model
 
     N = len(X)
     h, _, _, z = feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X,
                                camera.fx, camera.fy, camera.cx, camera.cy)
+    return h, z
+
+
+def _inlier_fraction(camera: PinholeCamera, p: Array, q: Array, X: Array, uv: Array, px: float = 4.0) -> float:
+    """Fraction of known features ``X`` (N, 3) that pose ``(p, q)`` projects within ``px``
+    pixels of their measurements ``uv`` (N, 2)."""
+    h, z = _project(camera, p, q, X)
     return float(np.mean((z > 0) & (np.linalg.norm(uv - h, axis=1) < px)))
 
 
@@ -255,9 +262,9 @@ class Slam:
             self._waiting.append(res.frame_id)
         elif res.state is TrackingState.TRACKING and self._waiting and self.filter.layout.n_poses >= 2:
             # the map now exists: the frames that waited for a baseline are localised on it,
-            # nearest to the new frame first (they share the most features with it)
-            # (from the map only: a waiting frame is, by definition, on a short baseline to
-            # its neighbours, and its ZR/ZT would be poor; finish() tries those later)
+            # nearest to the new frame first (they share the most features with it), from
+            # the map only (a waiting frame is on a short baseline to its neighbours and its
+            # ZR/ZT would be poor; finish() tries relative poses at the end)
             for j in sorted(self._waiting, reverse=True):
                 self._retry(j, "localised once the map was initialised (waited for a baseline)", relative=False)
             self._waiting = []
@@ -325,8 +332,6 @@ class Slam:
         """Find map features that tracking lost again in frame *k*, by projecting them
         with the pose guess ``(p, q)`` and matching descriptors nearby
         (:meth:`FrontEnd.reobserve`); returns how many were found."""
-        from .models import feature_model
-
         r = self.config.reobserve_px
         filt = self.filter
         if not r or filt.layout.n_features == 0:
@@ -338,8 +343,8 @@ class Slam:
         if not cand.any():
             return 0
         fids, X = fids[cand], X[cand]
-        c, N = self.camera, len(fids)
-        h, _, _, z = feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X, c.fx, c.fy, c.cx, c.cy)
+        c = self.camera
+        h, z = _project(c, p, q, X)
         vis = (z > filt.config.min_depth) & np.all(np.isfinite(h), 1) & (h[:, 0] >= 0) & (h[:, 1] >= 0) \
             & (h[:, 0] <= c.width - 1) & (h[:, 1] <= c.height - 1)
         if not vis.any():
@@ -459,13 +464,9 @@ class Slam:
         (N, 3) pass the filter's gate (in front of the camera, normalised innovation
         squared within ``gate_chi2``): the ones :meth:`InformationFilter.fuse_features`
         would take."""
-        from .models import feature_model
-
-        filt, c = self.filter, self.camera
+        filt = self.filter
         cols = filt.layout.pose_columns(frames)
-        x = filt.x
-        h, _, _, z = feature_model(x[cols[:, :3]], x[cols[:, 3:]], np.asarray(X, float).reshape(-1, 3),
-                                   c.fx, c.fy, c.cx, c.cy)
+        h, z = _project(self.camera, filt.x[cols[:, :3]], filt.x[cols[:, 3:]], np.asarray(X, float).reshape(-1, 3))
         chi2 = np.sum((uv - h) ** 2, 1) / self.config.zm_sigma_px**2
         ok = (z > filt.config.min_depth) & np.isfinite(chi2)
         if filt.config.gate_chi2 is not None:
