@@ -3,7 +3,7 @@
 Usage::
 
     # run SLAM on a sequence, record every filter operation, print timings and ATE
-    python benchmarks/recovery_replay.py record /work/shared/datasets/7scenes-redkitchen-a \
+    python benchmarks/recovery_replay.py record ../shared/datasets/7scenes-redkitchen-a \
         --log out/redkitchen_ops.pkl [--frames 500]
     # replay only the back end (layout growth, fusions, recover_active) from the log
     python benchmarks/recovery_replay.py replay out/redkitchen_ops.pkl [--check-every 25]
