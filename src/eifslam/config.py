@@ -38,8 +38,9 @@ class SystemConfig:
     init_parallax_deg : float
         The pair that initialises the map (III-C: the first frame and the first later
         frame related to it) needs at least this median parallax, degrees; until then
-        frames wait, and are localised on the map once it exists. Larger than the front
-        end's ``min_parallax_deg`` so that the first map is well triangulated.
+        frames wait, and are localised on the map once it exists. Set it above the front
+        end's ``min_parallax_deg`` (the default equals it) for a better triangulated first
+        map.
     sigma_px : float or None
         Standard deviation of a map feature's pixel measurement ``Zm``; None (default):
         1 px for float-descriptor detectors (SIFT, SURF), 2 px for binary ones (ORB,
@@ -52,8 +53,9 @@ class SystemConfig:
         known map supports exceeds this is not fused (a wrong five-point solution or an
         overconfident covariance); ``None`` fuses every pair.
     robust_smoothing : bool
-        Smoothing drops, between passes, the ``Zm`` that fail the filter's ``gate_chi2``
-        and the ``ZR``/``ZT`` that fail ``relative_gate_chi2`` at the smoothed estimate
+        After its passes, smoothing drops the ``ZR``/``ZT`` that fail
+        ``relative_gate_chi2`` (worst first), then the ``Zm`` that fail the filter's
+        ``gate_chi2``, at the smoothed estimate, and smooths again
         (:func:`eifslam.smoothing.reject_outliers`); False relinearises every fused one.
     reobserve_radius_px : float or None
         Map features that frame-to-frame tracking lost are searched for again in each
@@ -144,12 +146,17 @@ class SlamConfig:
     system: SystemConfig = field(default_factory=SystemConfig)
 
     @property
+    def float_descriptors(self) -> bool:
+        """Whether the detector gives float descriptors (SIFT, SURF) rather than binary ones."""
+        return self.frontend.detector in ("sift", "surf")
+
+    @property
     def zm_sigma_px(self) -> float:
         """Standard deviation of ``Zm``, pixels: ``system.sigma_px``, or by default 1 px for
         float descriptors (SIFT, SURF) and 2 px for binary ones (ORB, AKAZE)."""
         if self.system.sigma_px is not None:
             return float(self.system.sigma_px)
-        return 1.0 if self.frontend.detector in ("sift", "surf") else 2.0
+        return 1.0 if self.float_descriptors else 2.0
 
     @property
     def reobserve_px(self) -> float:
@@ -157,7 +164,7 @@ class SlamConfig:
         default 15 px for float descriptors (SIFT, SURF) and off for binary ones."""
         if self.system.reobserve_radius_px is not None:
             return float(self.system.reobserve_radius_px)
-        return 15.0 if self.frontend.detector in ("sift", "surf") else 0.0
+        return 15.0 if self.float_descriptors else 0.0
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> "SlamConfig":

@@ -529,6 +529,9 @@ class Slam:
         slam: Slam = blob["slam"]
         if not hasattr(slam, "_waiting"):  # saved by an older version
             slam._waiting = []
+        if not hasattr(slam.frontend, "_last_frame"):  # ... without re-observation records
+            slam.frontend._last_frame = np.full(len(slam.frontend._tracks), -1, np.int64)
+            slam.frontend._last_kp = np.full(len(slam.frontend._tracks), -1, np.int64)
         cfg = slam.config.frontend
         slam.frontend._detector = make_detector(cfg)
         slam.frontend._matcher = DescriptorMatcher(cfg.ratio, cfg.mutual)
