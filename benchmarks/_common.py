@@ -32,7 +32,7 @@ COLMAP_ATE: dict[str, float] = {
     "7scenes-redkitchen-a": 0.038,
 }
 
-#: Frame stages timed by :class:`eifslam.slam.Slam` (``report.json`` ``stage_ms_median``).
+#: Frame stages timed by :class:`eifslam.system.slam.Slam` (``report.json`` ``stage_ms_median``).
 STAGES: tuple[str, ...] = ("detect", "match", "relative_pose", "covariance", "init", "fuse", "recover", "total")
 
 #: Stages of the back end (the EIF): fusion and recovery.
@@ -108,7 +108,7 @@ def build_row(dataset: str, mode: str, detector: str, report: Mapping[str, Any] 
     dataset, mode, detector : str
         What was run.
     report : mapping, optional
-        The dict :func:`eifslam.commands.runner.run_sequence` returns (possibly updated
+        The dict :func:`eifslam.system.runner.run_sequence` returns (possibly updated
         with the box-ratio figures). ``None`` when the run failed before writing one.
     error : str, optional
         Why the run failed (``"ExcType: message"``).
@@ -357,7 +357,7 @@ def prepare_builtin(out: Path, n_frames: int = 54) -> tuple[Path, Any]:
     (Path, BuiltinScene)
         The data folder and the scene (needed for the box-ratio figures).
     """
-    from eifslam.scene import make_scene, render_scene
+    from eifslam.sim.scene import make_scene, render_scene
 
     scene = make_scene(n_frames=n_frames)
     data = out / "builtin-scene"
@@ -389,7 +389,7 @@ def run_one(source: Path, dataset: str, mode: str, detector: str, out_dir: Path,
     quiet : bool
         Hide the per-frame progress bar.
     runner : callable, optional
-        Replacement of :func:`eifslam.commands.runner.run_sequence` (tests).
+        Replacement of :func:`eifslam.system.runner.run_sequence` (tests).
     **row_extra
         Copied into the row.
 
@@ -399,8 +399,8 @@ def run_one(source: Path, dataset: str, mode: str, detector: str, out_dir: Path,
         From :func:`build_row`.
     """
     try:
-        from eifslam.commands.runner import run_sequence
-        from eifslam.config import SlamConfig
+        from eifslam.system.runner import run_sequence
+        from eifslam.system.config import SlamConfig
         from eifslam.io import open_source
 
         config = SlamConfig().replace(frontend={"detector": detector, **dict(frontend or {})},
@@ -408,7 +408,7 @@ def run_one(source: Path, dataset: str, mode: str, detector: str, out_dir: Path,
         seq = open_source(source)
         rep = (runner or run_sequence)(seq, config, out_dir, max_frames=max_frames, html=False, quiet=quiet)
         if scene is not None and rep.get("frames_tracked", 0) >= 3:
-            from eifslam.commands.demo import box_ratio_figures
+            from eifslam.cli.demo import box_ratio_figures
 
             try:
                 rep.update(box_ratio_figures(out_dir, scene))

@@ -5,7 +5,7 @@ Usage::
     python benchmarks/ablation.py --data ../shared/datasets/middlebury-templering \\
         --variant default '{}' --variant gate30 '{"filter": {"gate_chi2": 30}}' --out out/abl.json
 
-Each variant is a name and a JSON dict of :class:`eifslam.config.SlamConfig` overrides
+Each variant is a name and a JSON dict of :class:`eifslam.system.config.SlamConfig` overrides
 (``{"frontend": {...}, "filter": {...}, "system": {...}}``), run once per ``--seeds`` value
 (``frontend.seed``: OpenCV's random generator, which FLANN and RANSAC draw from). Runs
 with different seeds differ by more than many configuration changes do, so compare
@@ -36,10 +36,10 @@ from typing import Any  # noqa: E402
 
 def run_variant(source: Path, overrides: dict[str, Any], max_frames: int | None = None) -> dict[str, Any]:
     """Track ``source`` with the overrides; filter and smooth ATE, frames tracked, seconds."""
-    from eifslam.config import SlamConfig
-    from eifslam.evaluation import evaluate
+    from eifslam.system.config import SlamConfig
+    from eifslam.evaluation.metrics import evaluate
     from eifslam.io import Trajectory, open_source
-    from eifslam.slam import Slam
+    from eifslam.system.slam import Slam
 
     seq = open_source(source)
     n = len(seq) if max_frames is None else min(max_frames, len(seq))

@@ -4,9 +4,9 @@ Usage::
 
     python benchmarks/backend_scaling.py --out results/backend
 
-A camera walks down a synthetic corridor (:func:`eifslam.synthetic.corridor_scene`,
+A camera walks down a synthetic corridor (:func:`eifslam.sim.synthetic.corridor_scene`,
 features entering and leaving view, no loop) until the state has ``--min-dim`` entries,
-driven by :func:`eifslam.synthetic.run_filter` with incremental recovery
+driven by :func:`eifslam.sim.synthetic.run_filter` with incremental recovery
 (``InformationFilter(recovery="incremental")``). The same measurements are run again with
 the full solve each frame up to ``--full-max-dim`` entries, and during the incremental run
 the full solve is also timed (outside the per-frame timings) every ``--full-every``
@@ -46,11 +46,11 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 
-from eifslam.filter import InformationFilter  # noqa: E402
-from eifslam.incremental import EntryMap  # noqa: E402
-from eifslam.recovery import factorize, sparse_cholesky  # noqa: E402
-from eifslam.measurements import RelativePose  # noqa: E402
-from eifslam.synthetic import RunStats, corridor_scene, run_filter, simulate, true_relative  # noqa: E402
+from eifslam.estimation.filter import InformationFilter  # noqa: E402
+from eifslam.estimation.incremental import EntryMap  # noqa: E402
+from eifslam.estimation.recovery import factorize, sparse_cholesky  # noqa: E402
+from eifslam.estimation.measurements import RelativePose  # noqa: E402
+from eifslam.sim.synthetic import RunStats, corridor_scene, run_filter, simulate, true_relative  # noqa: E402
 
 
 class BlockNnzCounter:

@@ -1,10 +1,10 @@
 """Per-frame back-end cost of the exactly sparse EIF against a dense EKF (MonoSLAM-style).
 
-The same synthetic corridor exploration (:func:`eifslam.synthetic.corridor_scene` +
-:func:`eifslam.synthetic.simulate`) runs through
+The same synthetic corridor exploration (:func:`eifslam.sim.synthetic.corridor_scene` +
+:func:`eifslam.sim.synthetic.simulate`) runs through
 
 * the EIF with incremental recovery (paper III-G), and with the full solve, and
-* :class:`eifslam.ekf.DenseEKF` (same measurements, same linearisation, dense covariance),
+* :class:`eifslam.baselines.ekf.DenseEKF` (same measurements, same linearisation, dense covariance),
 
 timing each frame's back end: EIF = fuse + recover, EKF = linearise + covariance update.
 The EKF stops after the first frame whose update exceeds ``--ekf-budget-s``.
@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from eifslam import synthetic
-from eifslam.ekf import DenseEKF
-from eifslam.filter import InformationFilter
+from eifslam.sim import synthetic
+from eifslam.baselines.ekf import DenseEKF
+from eifslam.estimation.filter import InformationFilter
 
 
 class _Budget(Exception):

@@ -30,10 +30,10 @@ import cv2
 import numpy as np
 import yaml
 
-from eifslam.camera import PinholeCamera
+from eifslam.geometry.camera import PinholeCamera
 from eifslam.errors import ConfigError
 from eifslam.frontend import FrontEnd, FrontEndConfig
-from eifslam.geometry import quat_to_rotmat, quat_xyzw_to_wxyz
+from eifslam.geometry.rotations import quat_to_rotmat, quat_xyzw_to_wxyz
 
 
 def load_folder(d: Path, limit: int | None):

@@ -8,7 +8,7 @@ Usage::
     # replay only the back end (layout growth, fusions, recover_active) from the log
     python benchmarks/recovery_replay.py replay out/redkitchen_ops.pkl [--check-every 25]
 
-``record`` wraps the filter of a :class:`eifslam.slam.Slam` so that every ``add_pose`` /
+``record`` wraps the filter of a :class:`eifslam.system.slam.Slam` so that every ``add_pose`` /
 ``add_features`` (layout growth), every fusion ``info.add(idx, Lam, eta)`` and every
 ``recover_active()`` is appended to a log, in order. It prints the per-frame ``recover``
 timings (median, p95, sum), the tracking wall time, the recovery statistics and the ATE
@@ -51,9 +51,9 @@ def _summary(ms: list[float]) -> str:
 
 def record(args: argparse.Namespace) -> None:
     """Run SLAM on a sequence and record the filter operations."""
-    from eifslam.evaluation import evaluate
+    from eifslam.evaluation.metrics import evaluate
     from eifslam.io import Trajectory, open_source
-    from eifslam.slam import Slam
+    from eifslam.system.slam import Slam
 
     seq = open_source(args.sequence)
     slam = Slam(seq.camera)
@@ -109,9 +109,9 @@ def record(args: argparse.Namespace) -> None:
 def replay(args: argparse.Namespace) -> None:
     """Replay a recorded log through the incremental recovery and time each step."""
     from eifslam.errors import EstimatorError
-    from eifslam.incremental import IncrementalRecovery, TrackedInformationStore
-    from eifslam.layout import StateLayout
-    from eifslam.recovery import factorize
+    from eifslam.estimation.incremental import IncrementalRecovery, TrackedInformationStore
+    from eifslam.estimation.state import StateLayout
+    from eifslam.estimation.recovery import factorize
 
     with open(args.log, "rb") as fh:
         blob = pickle.load(fh)

@@ -168,7 +168,7 @@ def _tiny_dataset(root: Path, n: int = 4) -> Path:
     import cv2
 
     from eifslam.io import write_camera_yaml, write_tum
-    from eifslam.scene import make_scene, render_frame
+    from eifslam.sim.scene import make_scene, render_frame
 
     scene = make_scene(n_frames=54, width=320, height=240)
     (root / "images").mkdir(parents=True)

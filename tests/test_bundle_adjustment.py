@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eifslam import synthetic
-from eifslam.bundle_adjustment import (BAConfig, Observations, _Problem, bundle_adjust, exp_jacobian)
+from eifslam.sim import synthetic
+from eifslam.baselines.bundle_adjustment import (BAConfig, Observations, _Problem, bundle_adjust, exp_jacobian)
 from eifslam.errors import ConfigError, EstimatorError
-from eifslam.geometry import quat_exp, quat_multiply
+from eifslam.geometry.rotations import quat_exp, quat_multiply
 
 DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 
@@ -91,7 +91,7 @@ def test_bad_input_and_config():
 
 
 def test_core_modules_do_not_import_cv2_or_matplotlib():
-    code = ("import sys, eifslam.bundle_adjustment, eifslam.ekf; "
+    code = ("import sys, eifslam.baselines.bundle_adjustment, eifslam.baselines.ekf; "
             "print(any(m in sys.modules for m in ('cv2', 'matplotlib')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
@@ -99,11 +99,11 @@ def test_core_modules_do_not_import_cv2_or_matplotlib():
 
 @pytest.mark.skipif(not (DATASETS / "kitti-seq1").is_dir(), reason="../shared/datasets/kitti-seq1 is absent")
 def test_kitti_first_frames_ba_against_ground_truth():
-    from eifslam.bundle_adjustment import bundle_adjust_slam
-    from eifslam.config import SlamConfig
-    from eifslam.evaluation import evaluate
+    from eifslam.baselines.bundle_adjustment import bundle_adjust_slam
+    from eifslam.system.config import SlamConfig
+    from eifslam.evaluation.metrics import evaluate
     from eifslam.io import Trajectory, open_source
-    from eifslam.slam import Slam
+    from eifslam.system.slam import Slam
 
     seq = open_source(DATASETS / "kitti-seq1")
     slam = Slam(seq.camera, SlamConfig().replace(system={"mode": "ba"}))

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from eifslam import synthetic
-from eifslam.ekf import DenseEKF
-from eifslam.filter import InformationFilter
+from eifslam.sim import synthetic
+from eifslam.baselines.ekf import DenseEKF
+from eifslam.estimation.filter import InformationFilter
 
 
 def test_ekf_estimate_and_covariance_agree_with_eif():

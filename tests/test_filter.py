@@ -7,10 +7,10 @@ import pytest
 from scipy.stats import chi2
 
 from eifslam.errors import EstimatorError
-from eifslam.filter import FilterConfig, InformationFilter
-from eifslam.geometry import quat_conjugate, quat_log, quat_multiply
-from eifslam.smoothing import recover_scale, smooth
-from eifslam.synthetic import corridor_scene, orbit_scene, run_filter, simulate
+from eifslam.estimation.filter import FilterConfig, InformationFilter
+from eifslam.geometry.rotations import quat_conjugate, quat_log, quat_multiply
+from eifslam.estimation.smoothing import recover_scale, smooth
+from eifslam.sim.synthetic import corridor_scene, orbit_scene, run_filter, simulate
 
 
 def run(scene_fn, seed, noise=True, frames=12, **kw):
@@ -147,8 +147,8 @@ def test_unknown_state_is_a_clear_error():
 def test_robust_smoothing_drops_a_wrong_relative_pose():
     """A ZR/ZT whose direction is 40 degrees off (a wrong five-point solution) distorts the
     plain smoothed estimate; robust smoothing drops it and lands near the clean answer."""
-    from eifslam.geometry import quat_exp, quat_to_rotmat
-    from eifslam.measurements import RelativePose
+    from eifslam.geometry.rotations import quat_exp, quat_to_rotmat
+    from eifslam.estimation.measurements import RelativePose
 
     def solve(corrupt: bool, robust: bool):
         rng = np.random.default_rng(7)

@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
-from eifslam.camera import PinholeCamera
+from eifslam.geometry.camera import PinholeCamera
 from eifslam.errors import ConfigError, EstimatorError, ImageError
 from eifslam.frontend import FrontEnd, FrontEndConfig, Reason
-from eifslam.geometry import quat_to_rotmat, quat_xyzw_to_wxyz, rotvec_exp
+from eifslam.geometry.rotations import quat_to_rotmat, quat_xyzw_to_wxyz, rotvec_exp
 
 DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 CAM = PinholeCamera(500.0, 500.0, 319.5, 239.5, 640, 480)

@@ -11,7 +11,7 @@ from scipy.stats import chi2
 
 from eifslam.frontend.config import FrontEndConfig
 from eifslam.frontend.results import Reason
-from eifslam.frontend.synthetic import make_two_view_scene
+from eifslam.sim.two_view import make_two_view_scene
 from eifslam.frontend.twoview import (
     pose_error,
     refine_pose,
@@ -21,7 +21,7 @@ from eifslam.frontend.twoview import (
     sampson_residuals,
 )
 from eifslam.frontend.uncertainty import first_order_covariance, unscented_covariance
-from eifslam.geometry import quat_to_rotmat
+from eifslam.geometry.rotations import quat_to_rotmat
 
 MOTIONS = ["sideways", "forward", "general"]
 
@@ -37,7 +37,7 @@ def test_pure_modules_do_not_import_opencv():
     code = (
         "import sys\n"
         "import eifslam.frontend.twoview, eifslam.frontend.uncertainty, eifslam.frontend.split\n"
-        "import eifslam.frontend.synthetic, eifslam.frontend.tracks, eifslam.frontend.config\n"
+        "import eifslam.sim.two_view, eifslam.frontend.tracks, eifslam.frontend.config\n"
         "print('cv2' in sys.modules)\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

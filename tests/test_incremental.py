@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from eifslam.errors import ConfigError
-from eifslam.filter import InformationFilter
-from eifslam.incremental import IncrementalRecovery
-from eifslam.measurements import RelativePose
-from eifslam.recovery import factorize
-from eifslam.smoothing import smooth
-from eifslam.synthetic import corridor_scene, run_filter, simulate, true_relative
+from eifslam.estimation.filter import InformationFilter
+from eifslam.estimation.incremental import IncrementalRecovery
+from eifslam.estimation.measurements import RelativePose
+from eifslam.estimation.recovery import factorize
+from eifslam.estimation.smoothing import smooth
+from eifslam.sim.synthetic import corridor_scene, run_filter, simulate, true_relative
 
 
 def scene(frames: int, seed: int):
@@ -201,7 +201,7 @@ def test_indefinite_window_is_solved_without_a_rebuild(monkeypatch):
     """When the Cholesky factorisation of the window fails (a numerically indefinite
     pose Schur complement, as on long real sequences), the window is solved by LDL^T and
     stays valid: no rebuild, no fallback."""
-    import eifslam.incremental as incmod
+    import eifslam.estimation.incremental as incmod
 
     sc, m = scene(20, 9)
     f = InformationFilter(sc.camera, recovery="incremental", window=1)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eifslam.camera import PinholeCamera
+from eifslam.geometry.camera import PinholeCamera
 from eifslam.errors import CalibrationError
 from eifslam.io.cameras import (
     load_camera,

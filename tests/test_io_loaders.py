@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from eifslam.camera import PinholeCamera
+from eifslam.geometry.camera import PinholeCamera
 from eifslam.errors import CalibrationError, DatasetError, ImageError
-from eifslam.geometry import quat_normalize, quat_to_rotmat, quat_wxyz_to_xyzw
+from eifslam.geometry.rotations import quat_normalize, quat_to_rotmat, quat_wxyz_to_xyzw
 from eifslam.io import open_source
 from eifslam.io.cameras import write_camera_yaml
 from eifslam.io.detect import detect_layout

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from eifslam.errors import DatasetError
-from eifslam.geometry import quat_normalize, rotmat_to_quat
+from eifslam.geometry.rotations import quat_normalize, rotmat_to_quat
 from eifslam.io.trajectory import Trajectory, associate, parse_tum, read_tum, write_tum
 
 

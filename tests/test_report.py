@@ -12,10 +12,10 @@ import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
 from eifslam.errors import DatasetError
-from eifslam.geometry import quat_normalize, rotmat_to_quat
+from eifslam.geometry.rotations import quat_normalize, rotmat_to_quat
 from eifslam.io.ply import write_ply
 from eifslam.io.trajectory import Trajectory, write_tum
-from eifslam.report import parse_frames, read_frames, write_report
+from eifslam.evaluation.report import parse_frames, read_frames, write_report
 
 FIGURES = ("map_top.png", "map_3d.png", "information_sparsity.png", "timing.png")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -184,7 +184,7 @@ def test_sparsity_plot_counts_nonzeros_and_image_fallback():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from eifslam.plots import plot_information_sparsity
+    from eifslam.evaluation.plots import plot_information_sparsity
 
     rng = np.random.default_rng(5)
     A = _spd(rng, 80)
@@ -202,7 +202,7 @@ def test_stage_times_and_subsample():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from eifslam.plots import plot_stage_times, subsample_indices
+    from eifslam.evaluation.plots import plot_stage_times, subsample_indices
 
     x = np.array([3.0, 1.0, np.nan, 2.0])
     stages = {"match": np.array([1.0, np.nan, 2.0, 3.0]), "detect": np.ones(4), "total": np.ones(4)}

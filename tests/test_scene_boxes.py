@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from eifslam.errors import ConfigError
-from eifslam.scene import estimate_box_ratio, fit_rectangle, make_scene, top_face_mask
+from eifslam.sim.scene import estimate_box_ratio, fit_rectangle, make_scene, top_face_mask
 
 
 @pytest.fixture(scope="module")

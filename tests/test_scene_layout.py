@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from eifslam.errors import ConfigError
-from eifslam.geometry import quat_to_rotmat
-from eifslam.scene import make_scene
-from eifslam.scene.layout import TABLE_SEMI_AXES
+from eifslam.geometry.rotations import quat_to_rotmat
+from eifslam.sim.scene import make_scene
+from eifslam.sim.scene.layout import TABLE_SEMI_AXES
 
 
 @pytest.fixture(scope="module")
@@ -22,8 +22,8 @@ def scene():
 def test_pure_modules_do_not_import_cv2_or_matplotlib():
     code = (
         "import sys\n"
-        "import eifslam.scene, eifslam.scene.layout, eifslam.scene.boxes\n"
-        "s = eifslam.scene.make_scene()\n"
+        "import eifslam.sim.scene, eifslam.sim.scene.layout, eifslam.sim.scene.boxes\n"
+        "s = eifslam.sim.scene.make_scene()\n"
         "bad = [m for m in ('cv2', 'matplotlib') if m in sys.modules]\n"
         "print(','.join(bad))\n"
     )

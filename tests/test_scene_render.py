@@ -10,10 +10,10 @@ import pytest
 
 cv2 = pytest.importorskip("cv2")
 
-from eifslam.cli import main  # noqa: E402
+from eifslam.cli.main import main  # noqa: E402
 from eifslam.errors import ConfigError  # noqa: E402
-from eifslam.scene import make_scene, render_frame, render_scene, top_face_mask  # noqa: E402
-from eifslam.scene import render as render_module  # noqa: E402
+from eifslam.sim.scene import make_scene, render_frame, render_scene, top_face_mask  # noqa: E402
+from eifslam.sim.scene import render as render_module  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eifslam.cli import main as cli_main
-from eifslam.config import SlamConfig
+from eifslam.cli.main import main as cli_main
+from eifslam.system.config import SlamConfig
 from eifslam.errors import ConfigError, ImageError
-from eifslam.slam import Slam, TrackingState
+from eifslam.system.slam import Slam, TrackingState
 
 DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 
@@ -32,7 +32,7 @@ def test_config_rejects_unknown_keys_and_bad_values():
 
 @pytest.fixture(scope="module")
 def scene_run():
-    from eifslam.scene import make_scene, render_frame
+    from eifslam.sim.scene import make_scene, render_frame
 
     scene = make_scene(n_frames=54)
     slam = Slam(scene.camera)
@@ -42,7 +42,7 @@ def scene_run():
 
 
 def test_builtin_scene_tracks_every_frame_with_small_error(scene_run):
-    from eifslam.evaluation import evaluate
+    from eifslam.evaluation.metrics import evaluate
     from eifslam.io import Trajectory
 
     scene, slam, idx, results = scene_run
@@ -60,7 +60,7 @@ def test_builtin_scene_tracks_every_frame_with_small_error(scene_run):
 
 
 def test_black_frame_is_lost_not_a_crash_and_tracking_resumes(scene_run, tmp_path):
-    from eifslam.scene import render_frame
+    from eifslam.sim.scene import render_frame
 
     scene, slam, idx, _ = scene_run
     r = slam.track(np.zeros((scene.camera.height, scene.camera.width, 3), np.uint8), 99.0)
@@ -78,7 +78,7 @@ def test_black_frame_is_lost_not_a_crash_and_tracking_resumes(scene_run, tmp_pat
 
 
 def test_bad_image_raises_image_error():
-    from eifslam.camera import PinholeCamera
+    from eifslam.geometry.camera import PinholeCamera
 
     slam = Slam(PinholeCamera(500, 500, 319.5, 239.5, 640, 480))
     with pytest.raises(ImageError):
@@ -86,7 +86,7 @@ def test_bad_image_raises_image_error():
 
 
 def test_repeated_frame_is_not_fused_as_a_baseline(scene_run):
-    from eifslam.scene import make_scene, render_frame
+    from eifslam.sim.scene import make_scene, render_frame
 
     scene = make_scene(n_frames=54)
     slam = Slam(scene.camera)
@@ -98,7 +98,7 @@ def test_repeated_frame_is_not_fused_as_a_baseline(scene_run):
 
 
 def test_frames_that_wait_for_a_baseline_are_localised_once_the_map_exists():
-    from eifslam.scene import make_scene, render_frame
+    from eifslam.sim.scene import make_scene, render_frame
 
     scene = make_scene(n_frames=54)
     slam = Slam(scene.camera)
@@ -118,7 +118,7 @@ def test_frames_that_wait_for_a_baseline_are_localised_once_the_map_exists():
 
 
 def test_session_saves_after_the_recovery_window_was_rebuilt(scene_run, tmp_path):
-    from eifslam.scene import render_frame
+    from eifslam.sim.scene import render_frame
 
     scene, slam, idx, _ = scene_run
     slam.filter.incremental.on_invalidate()  # the next frame rebuilds the window (factorisations)
@@ -131,7 +131,7 @@ def test_session_saves_after_the_recovery_window_was_rebuilt(scene_run, tmp_path
 
 @pytest.mark.skipif(not (DATASETS / "kitti-seq1").is_dir(), reason="../shared/datasets/kitti-seq1 is absent")
 def test_kitti_first_frames_against_ground_truth():
-    from eifslam.evaluation import evaluate
+    from eifslam.evaluation.metrics import evaluate
     from eifslam.io import Trajectory, open_source
 
     seq = open_source(DATASETS / "kitti-seq1")
@@ -148,7 +148,7 @@ def test_kitti_first_frames_against_ground_truth():
 
 def _tiny_folder(tmp_path: Path, n: int = 3) -> Path:
     import cv2
-    from eifslam.scene import make_scene, render_frame
+    from eifslam.sim.scene import make_scene, render_frame
 
     scene = make_scene(n_frames=54, width=320, height=240)
     d = tmp_path / "data"
@@ -185,7 +185,7 @@ def test_cli_bad_calibration_is_one_line(tmp_path, capsys):
 
 
 def test_runs_repeat_with_the_same_seed_and_bad_settings_are_named():
-    from eifslam.scene import make_scene, render_frame
+    from eifslam.sim.scene import make_scene, render_frame
 
     scene = make_scene(n_frames=54)
     images = [render_frame(scene, k) for k in range(4)]

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..camera import PinholeCamera
+from ..geometry.camera import PinholeCamera
 from ..errors import ConfigError, ImageError
 from .config import FrontEndConfig
 from .split import laplacian_sign

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..camera import PinholeCamera
+from ..geometry.camera import PinholeCamera
 from ..errors import EstimatorError
 from .config import FrontEndConfig
 from .features import Features, detect_features, make_detector

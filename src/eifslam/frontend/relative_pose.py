@@ -13,9 +13,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..camera import PinholeCamera
-from ..geometry import rotmat_to_quat
-from ..measurements import RelativePose
+from ..geometry.camera import PinholeCamera
+from ..geometry.rotations import rotmat_to_quat
+from ..estimation.measurements import RelativePose
 from .config import FrontEndConfig
 from .matching import essential_ransac
 from .results import Reason, RelativePoseResult

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from ..measurements import RelativePose
+from ..estimation.measurements import RelativePose
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]

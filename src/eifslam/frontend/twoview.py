@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from ..geometry import quat_log, rotmat_to_quat, rotvec_exp, skew, tangent_basis
+from ..geometry.rotations import quat_log, rotmat_to_quat, rotvec_exp, skew, tangent_basis
 
 Array = NDArray[np.float64]
 

@@ -28,7 +28,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
-from ..camera import PinholeCamera
+from ..geometry.camera import PinholeCamera
 from .files import read_text
 from ..errors import CalibrationError, EifslamError
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..camera import PinholeCamera
+from ..geometry.camera import PinholeCamera
 from ..errors import DatasetError
 from .images import IMAGE_EXTENSIONS
 from .sequence import Sequence

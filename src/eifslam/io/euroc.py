@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from ..camera import PinholeCamera
+from ..geometry.camera import PinholeCamera
 from .files import read_text
 from ..errors import DatasetError
-from ..geometry import quat_to_rotmat
+from ..geometry.rotations import quat_to_rotmat
 from .cameras import read_euroc_sensor
 from .folder import ground_truth_at_frames, resolve_camera
 from .sequence import Frame, Sequence

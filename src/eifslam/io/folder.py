@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from ..camera import PinholeCamera
+from ..geometry.camera import PinholeCamera
 from .files import read_text
 from ..errors import DatasetError
 from .cameras import load_camera

@@ -16,7 +16,7 @@ from typing import Callable, Iterator
 import numpy as np
 from numpy.typing import NDArray
 
-from ..camera import PinholeCamera
+from ..geometry.camera import PinholeCamera
 from ..errors import DatasetError, ImageError
 from .images import read_image
 from .trajectory import Trajectory

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import PinholeCamera
+from ..geometry.camera import PinholeCamera
 from ..errors import DatasetError
 from .cameras import _read_text, parse_strecha_camera
 from .folder import read_times, resolve_camera

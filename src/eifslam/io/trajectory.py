@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from .files import read_text
 from ..errors import DatasetError
-from ..geometry import quat_normalize, quat_to_rotmat, quat_wxyz_to_xyzw, quat_xyzw_to_wxyz
+from ..geometry.rotations import quat_normalize, quat_to_rotmat, quat_wxyz_to_xyzw, quat_xyzw_to_wxyz
 
 Array = NDArray[np.float64]
 
@@ -95,7 +95,7 @@ class Trajectory:
     @classmethod
     def from_poses(cls, timestamps: Array, T_wc: Array) -> "Trajectory":
         """Build from ``(N,)`` timestamps and ``(N, 4, 4)`` or ``(N, 3, 4)`` camera-to-world poses."""
-        from ..geometry import rotmat_to_quat
+        from ..geometry.rotations import rotmat_to_quat
 
         T = np.asarray(T_wc, dtype=np.float64)
         if T.ndim != 3 or T.shape[1:] not in ((4, 4), (3, 4)):

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import PinholeCamera
+from ..geometry.camera import PinholeCamera
 from .files import read_text
 from ..errors import DatasetError
 from .folder import ground_truth_at_frames, resolve_camera

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..camera import PinholeCamera
+from ..geometry.camera import PinholeCamera
 from ..errors import DatasetError
 from .cameras import load_camera
 from .folder import ground_truth_at_frames

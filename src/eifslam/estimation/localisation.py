@@ -1,0 +1,70 @@
+"""Pose of one image from known map features (pure NumPy).
+
+Used when an image has no relative pose with enough baseline to a known pose (a camera
+that only rotates, or a 30 Hz camera that has barely moved): the pose is then determined by
+the ``Zm`` of known map features alone, which the EIF fuses as usual. This module only
+provides the initial guess (a few robust Gauss-Newton steps on the reprojection error of
+the pose alone), so that the EIF linearises at a good point.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..geometry import models
+from ..geometry.camera import PinholeCamera
+from ..geometry.rotations import quat_normalize
+
+Array = NDArray[np.float64]
+
+
+def localise_pose(
+    camera: PinholeCamera, p0: Array, q0: Array, X: Array, uv: Array, iterations: int = 8,
+    huber_px: float = 2.0, min_inliers: int = 12, inlier_px: float = 4.0,
+) -> tuple[Array, Array, NDArray[np.bool_]] | None:
+    """Refine a pose guess from 2D-3D correspondences.
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+    p0, q0 : (3,), (4,) initial camera centre and ``q_wc``.
+    X : (N, 3) world points; uv : (N, 2) their undistorted pixels.
+    iterations : Gauss-Newton steps with Huber weights.
+    huber_px, inlier_px : robust-weight threshold and final inlier threshold, pixels.
+    min_inliers : fewer inliers than this is a failure.
+
+    Returns
+    -------
+    (p, q, inliers) or None when the pose is not determined.
+    """
+    if len(X) < min_inliers:
+        return None
+    p, q = np.asarray(p0, float).copy(), quat_normalize(np.asarray(q0, float))
+    c = camera
+    for _ in range(iterations):
+        N = len(X)
+        h, Jp, _, z = models.feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X,
+                                           c.fx, c.fy, c.cx, c.cy)
+        r = uv - h
+        e = np.linalg.norm(r, axis=1)
+        w = np.where(e <= huber_px, 1.0, huber_px / np.maximum(e, 1e-12)) * (z > 0)
+        A = np.einsum("n,nij,nik->jk", w, Jp, Jp)
+        b = np.einsum("n,nij,ni->j", w, Jp, r)
+        A[3:, 3:] += 1e6 * np.outer(q, q)  # fix the quaternion's norm direction
+        A += 1e-9 * np.trace(A) * np.eye(7)
+        try:
+            d = np.linalg.solve(A, b)
+        except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(d)):
+            return None
+        p, q = p + d[:3], quat_normalize(q + d[3:])
+        if np.linalg.norm(d) < 1e-10:
+            break
+    N = len(X)
+    h, _, _, z = models.feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X, c.fx, c.fy, c.cx, c.cy)
+    inl = (z > 0) & (np.linalg.norm(uv - h, axis=1) < inlier_px)
+    if inl.sum() < min_inliers:
+        return None
+    return p, q, inl

@@ -1,0 +1,145 @@
+"""Measurement types exchanged between the front end and the estimator (pure NumPy).
+
+Poses are identified by integer **frame ids**, map features by integer **track ids**;
+:class:`eifslam.layout.StateLayout` maps ids to slices of the state vector.
+
+* :class:`FeatureObservations` is a batch of ``Zm`` (paper eq. 3): undistorted pixels of
+  map features (tracks in ``Ωm``) seen from poses.
+* :class:`RelativePose` is one ``ZR`` + ``ZT`` pair (paper eqs. 4-6) between two poses,
+  computed from the ``Ωp`` tracks, with the joint 5x5 covariance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..geometry.rotations import quat_normalize
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class FeatureObservations:
+    """A batch of image measurements ``Zm`` of map features.
+
+    Attributes
+    ----------
+    pose : (N,) int64
+        Frame id of the observing pose.
+    feature : (N,) int64
+        Track id of the observed map feature.
+    uv : (N, 2) float64
+        Undistorted pixel coordinates.
+    sigma_px : (N,) float64
+        Standard deviation of each pixel coordinate (isotropic), pixels.
+    """
+
+    pose: IntArray
+    feature: IntArray
+    uv: Array
+    sigma_px: Array
+
+    @staticmethod
+    def make(pose, feature, uv, sigma_px: float | Array = 1.0) -> "FeatureObservations":
+        """Build a batch from array-likes, broadcasting a scalar ``sigma_px``."""
+        pose = np.asarray(pose, dtype=np.int64).reshape(-1)
+        feature = np.asarray(feature, dtype=np.int64).reshape(-1)
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        sig = np.broadcast_to(np.asarray(sigma_px, dtype=float), pose.shape).copy()
+        if not (len(pose) == len(feature) == len(uv)):
+            raise ValueError("pose, feature and uv must have the same length")
+        if not (np.all(np.isfinite(uv)) and np.all(sig > 0) and np.all(np.isfinite(sig))):
+            raise ValueError("feature observations must be finite with positive sigma")
+        return FeatureObservations(pose, feature, uv, sig)
+
+    @staticmethod
+    def empty() -> "FeatureObservations":
+        """A batch of zero measurements with the right dtypes and widths."""
+        return FeatureObservations(
+            np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0)
+        )
+
+    def __len__(self) -> int:
+        return int(len(self.pose))
+
+    def subset(self, mask) -> "FeatureObservations":
+        """The measurements selected by a boolean mask or index array."""
+        return FeatureObservations(self.pose[mask], self.feature[mask], self.uv[mask], self.sigma_px[mask])
+
+    @staticmethod
+    def concatenate(batches: "list[FeatureObservations]") -> "FeatureObservations":
+        """Join batches into one."""
+        if not batches:
+            return FeatureObservations.empty()
+        return FeatureObservations(
+            np.concatenate([b.pose for b in batches]),
+            np.concatenate([b.feature for b in batches]),
+            np.concatenate([b.uv for b in batches]),
+            np.concatenate([b.sigma_px for b in batches]),
+        )
+
+
+@dataclass(frozen=True)
+class RelativePose:
+    """Relative pose of camera *j* seen from camera *i*: ``ZR`` and ``ZT`` jointly.
+
+    Attributes
+    ----------
+    i, j : int
+        Frame ids of the reference pose and the other pose.
+    q_ij : (4,) float64
+        ``ZR``: unit quaternion ``[w, x, y, z]`` of ``R_ij = R_wi.T @ R_wj``.
+    t_ij : (3,) float64
+        Unit direction of ``R_wi.T @ (p_j - p_i)``, camera *j*'s centre in frame *i*
+        (``ZT`` is ``[t_x / t_z, t_y / t_z]`` of it).
+    cov : (5, 5) float64
+        Joint covariance of the error ``[dtheta (3, rad), dt (2)]`` where the true
+        rotation is ``R_ij @ Exp(dtheta)`` and the true direction is
+        ``normalize(t_ij + tangent_basis(t_ij) @ dt)``.
+    n_inliers : int
+        Number of ``Ωp`` correspondences behind the estimate.
+    """
+
+    i: int
+    j: int
+    q_ij: Array
+    t_ij: Array
+    cov: Array
+    n_inliers: int = 0
+
+    def __post_init__(self) -> None:
+        q = quat_normalize(np.asarray(self.q_ij, dtype=float))
+        t = np.asarray(self.t_ij, dtype=float)
+        nt = np.linalg.norm(t)
+        cov = np.asarray(self.cov, dtype=float)
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t)) and nt > 0):
+            raise ValueError("relative pose must be finite with a non-zero translation")
+        if cov.shape != (5, 5) or not np.all(np.isfinite(cov)):
+            raise ValueError("relative pose covariance must be a finite 5x5 matrix")
+        object.__setattr__(self, "q_ij", q)
+        object.__setattr__(self, "t_ij", t / nt)
+        object.__setattr__(self, "cov", 0.5 * (cov + cov.T))
+
+
+@dataclass
+class MeasurementStore:
+    """Every measurement fused so far, kept for smoothing (paper III-E).
+
+    Attributes
+    ----------
+    features : list of FeatureObservations
+        Batches of ``Zm`` in fusion order.
+    relative : list of RelativePose
+        ``ZR``/``ZT`` pairs in fusion order.
+    """
+
+    features: list[FeatureObservations] = field(default_factory=list)
+    relative: list[RelativePose] = field(default_factory=list)
+
+    def all_features(self) -> FeatureObservations:
+        """Every stored ``Zm`` as one batch."""
+        return FeatureObservations.concatenate(self.features)

@@ -1,0 +1,141 @@
+"""State recovery ``I x = i`` (paper eq. 9) and marginal covariances (pure NumPy / SciPy).
+
+The information matrix of this problem has a special structure that the solver uses:
+no measurement involves two features, so the feature-feature part ``I_ff`` is block
+diagonal with 3x3 blocks. Eliminating the features first (the Schur complement onto the
+poses, the "reduced camera system" of bundle adjustment) leaves a small sparse system
+``S = I_pp - I_pf I_ff^-1 I_fp`` of dimension ``7 x poses``, factorised by sparse
+Cholesky with a fill-reducing (minimum degree) ordering; the features are then
+back-substituted block by block. This is an exact Cholesky factorisation of ``I`` in the
+elimination order "features first, then poses".
+
+Marginal covariances come from the same factorisation without any dense inverse:
+a pose block of ``I^-1`` equals the block of ``S^-1`` (7 sparse solves); a feature block
+is ``D^-1 + D^-1 B S^-1 B^T D^-1`` with ``D`` its 3x3 information block and ``B`` its
+coupling to the poses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+from scipy.sparse.linalg import splu
+
+from ..errors import EstimatorError
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+def sparse_cholesky(A: sp.spmatrix):
+    """Factorise a symmetric positive definite sparse matrix.
+
+    SciPy has no sparse Cholesky; SuperLU with a symmetric minimum-degree ordering on
+    ``A + A^T`` and no pivoting off the diagonal is the same factorisation (``L U`` with
+    ``U = D L^T``). Returns an object with ``solve(b)``.
+    """
+    A = sp.csc_matrix(A)
+    try:
+        return splu(
+            A,
+            permc_spec="MMD_AT_PLUS_A",
+            diag_pivot_thresh=0.0,
+            options=dict(SymmetricMode=True),
+        )
+    except RuntimeError as exc:  # exactly singular
+        raise EstimatorError(f"information matrix is singular ({exc}); is the gauge fixed?") from exc
+
+
+@dataclass
+class SchurFactor:
+    """Factorisation of ``I`` by eliminating features then poses.
+
+    Attributes
+    ----------
+    pose_idx : (P*7,) int   state indices of the poses, in state order.
+    feat_idx : (F*3,) int   state indices of the features, in state order.
+    Dinv : (F, 3, 3)        inverses of the feature information blocks.
+    B : csr (F*3, P*7)      ``I_fp``.
+    S_factor                factorisation of the reduced pose system.
+    """
+
+    pose_idx: IntArray
+    feat_idx: IntArray
+    Dinv: Array
+    B: sp.csr_matrix
+    S_factor: object
+    n: int
+
+    def _dinv_apply(self, v: Array) -> Array:
+        """Apply the block-diagonal ``I_ff^-1`` to ``(F*3,)`` or ``(F*3, m)``."""
+        F = len(self.Dinv)
+        if v.ndim == 1:
+            return np.einsum("fij,fj->fi", self.Dinv, v.reshape(F, 3)).ravel()
+        m = v.shape[1]
+        return np.einsum("fij,fjm->fim", self.Dinv, v.reshape(F, 3, m)).reshape(F * 3, m)
+
+    def solve(self, b: Array) -> Array:
+        """Solve ``I x = b`` for ``b`` of shape ``(n,)`` or ``(n, m)``."""
+        b = np.asarray(b, dtype=float)
+        bp, bf = b[self.pose_idx], b[self.feat_idx]
+        Dbf = self._dinv_apply(bf)
+        rhs = bp - self.B.T @ Dbf
+        xp = self.S_factor.solve(rhs) if len(self.pose_idx) else rhs
+        xf = Dbf - self._dinv_apply(np.asarray(self.B @ xp))
+        x = np.zeros_like(b)
+        x[self.pose_idx] = xp
+        x[self.feat_idx] = xf
+        return x
+
+    def covariance(self, idx: IntArray) -> Array:
+        """The block of ``I^-1`` on state indices ``idx`` (k,), without a full inverse."""
+        idx = np.asarray(idx, dtype=np.int64)
+        E = np.zeros((self.n, len(idx)))
+        E[idx, np.arange(len(idx))] = 1.0
+        X = self.solve(E)
+        C = X[idx]
+        return 0.5 * (C + C.T)
+
+
+def factorize(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray) -> SchurFactor:
+    """Factorise the information matrix ``I`` (n x n) given which entries are features.
+
+    Parameters
+    ----------
+    I : sparse (n, n) information matrix.
+    pose_idx : (P*7,) state indices of poses.
+    feat_idx : (F*3,) state indices of features (grouped by three, in feature order).
+    """
+    I = sp.csr_matrix(I)
+    n = I.shape[0]
+    F = len(feat_idx) // 3
+    if F:
+        Iff = I[feat_idx][:, feat_idx]
+        fi = np.arange(F * 3)
+        blk = fi // 3
+        coo = Iff.tocoo()
+        same = blk[coo.row] == blk[coo.col]
+        if not np.all(same | (coo.data == 0)):
+            raise EstimatorError("two features share a measurement: the information matrix is not of SLAM form")
+        D = np.zeros((F, 3, 3))
+        D[blk[coo.row[same]], coo.row[same] % 3, coo.col[same] % 3] = coo.data[same]
+        det = np.linalg.det(D)
+        if np.any(~np.isfinite(det)) or np.any(det <= 0):
+            bad = int(np.argmax(~(det > 0)))
+            raise EstimatorError(f"feature block {bad} has no information (seen from one pose only?)")
+        Dinv = np.linalg.inv(D)
+        B = I[feat_idx][:, pose_idx].tocsr()
+        rows = np.repeat(np.arange(F * 3), 3)
+        cols = (np.arange(F * 3)[:, None] // 3 * 3 + np.arange(3)).ravel()
+        Dinv_sp = sp.csr_matrix((Dinv.reshape(F * 3, 3).ravel(), (rows, cols)), shape=(F * 3, F * 3))
+        S = I[pose_idx][:, pose_idx] - (B.T @ Dinv_sp @ B)
+    else:
+        Dinv = np.zeros((0, 3, 3))
+        B = sp.csr_matrix((0, len(pose_idx)))
+        S = I[pose_idx][:, pose_idx]
+    S = sp.csc_matrix(0.5 * (S + S.T))
+    S_factor = sparse_cholesky(S) if len(pose_idx) else None
+    return SchurFactor(pose_idx, feat_idx, Dinv, B, S_factor, n)
