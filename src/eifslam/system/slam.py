@@ -113,14 +113,23 @@ class Slam:
     ----------
     camera : PinholeCamera
     config : SlamConfig, optional
+    frontend : object, optional
+        What turns an image into ``Zm`` and ``ZR``/``ZT`` (default: the OpenCV
+        :class:`~eifslam.frontend.FrontEnd` made from ``config.frontend``). Any object with
+        the same methods will do; :class:`eifslam.sim.frontend.SyntheticFrontEnd` feeds
+        simulated measurements through the same Algorithm 1.
+    backend : object, optional
+        The estimator (default: the :class:`~eifslam.estimation.filter.InformationFilter`
+        made from ``config.filter`` and ``config.system``).
     """
 
-    def __init__(self, camera: PinholeCamera, config: SlamConfig | None = None) -> None:
+    def __init__(self, camera: PinholeCamera, config: SlamConfig | None = None, *,
+                 frontend=None, backend=None) -> None:
         self.camera = camera
         self.config = config or SlamConfig()
-        self.frontend = FrontEnd(camera, self.config.frontend)
-        self.filter = InformationFilter(camera, self.config.filter, recovery=self.config.system.recovery,
-                                        window=self.config.system.window)
+        self.frontend = frontend if frontend is not None else FrontEnd(camera, self.config.frontend)
+        self.filter = backend if backend is not None else InformationFilter(
+            camera, self.config.filter, recovery=self.config.system.recovery, window=self.config.system.window)
         self.results: list[TrackResult] = []
         self._timestamps: dict[int, float] = {}
         self._track_obs: dict[int, list[tuple[int, Array]]] = {}
