@@ -118,7 +118,7 @@ def run(scene, meas, mode: str, max_dim: int, window: int, full_every: int | Non
             row["window"] = len(f.incremental.active_indices)
         if full_every and k > 0 and (k % full_every == 0):
             I = f.information_matrix()
-            pose_idx, feat_idx = f._index_sets()
+            pose_idx, feat_idx = f.index_sets()
             t0 = time.perf_counter()
             F = factorize(I, pose_idx, feat_idx)
             x = F.solve(f.info.vector)
@@ -290,7 +290,7 @@ def accuracy(filt: InformationFilter, I) -> dict:
     """Final incremental and full-solve states against a reference refined in extended
     precision (:func:`refined_solution`), and their residuals."""
     i = filt.info.vector
-    F = factorize(I, *filt._index_sets())
+    F = factorize(I, *filt.index_sets())
     x_full = F.solve(i)
     x_ref = refined_solution(I, i, F, x_full)
     out = {"x_ref": x_ref, "max_abs_x": float(np.abs(x_ref).max())}
@@ -310,7 +310,7 @@ def loop_closure(scene, meas, filt: InformationFilter) -> dict:
     filt.recover_active()
     dt = time.perf_counter() - t0
     I = filt.information_matrix()
-    x = factorize(I, *filt._index_sets()).solve(filt.info.vector)
+    x = factorize(I, *filt.index_sets()).solve(filt.info.vector)
     a = filt.incremental.active_indices
     out = dict(state_dim=filt.dim, recover_ms=1e3 * dt, fallbacks=filt.incremental.stats.fallbacks - before,
                window=len(a), active_rel_diff_to_full=float(np.max(np.abs(x[a] - filt.x[a])) / max(1.0, np.abs(x).max())))
@@ -332,7 +332,7 @@ def compare_solvers(filt: InformationFilter, I, x_ref) -> dict:
     A.sort_indices()
 
     def superlu_schur():
-        return factorize(A, *filt._index_sets()).solve(i)
+        return factorize(A, *filt.index_sets()).solve(i)
 
     def superlu_full():
         return sparse_cholesky(A).solve(i)

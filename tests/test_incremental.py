@@ -21,7 +21,7 @@ def scene(frames: int, seed: int):
 
 
 def full_solve(f: InformationFilter) -> np.ndarray:
-    return factorize(f.information_matrix(), *f._index_sets()).solve(f.information_vector())
+    return factorize(f.information_matrix(), *f.index_sets()).solve(f.information_vector())
 
 
 def rel_err(a: np.ndarray, b: np.ndarray) -> float:

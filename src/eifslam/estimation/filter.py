@@ -375,17 +375,49 @@ class InformationFilter:
         """``i`` as a vector ``(dim,)`` (a copy)."""
         return self.info.vector.copy()
 
-    def _index_sets(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    def index_sets(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """State indices of every pose entry ``(7 P,)`` and every feature entry ``(3 F,)``,
+        in state order (what :func:`~eifslam.estimation.recovery.factorize` needs)."""
         pids, fids = self.layout.pose_ids, self.layout.feature_ids
         pose_idx = self.layout.pose_columns(pids).ravel() if pids else np.zeros(0, np.int64)
         feat_idx = self.layout.feature_columns(fids).ravel() if fids else np.zeros(0, np.int64)
         return pose_idx, feat_idx
 
+    def factorize(self, matrix: sp.spmatrix) -> SchurFactor:
+        """Factorise a ``(dim, dim)`` matrix with the structure of ``I`` (features
+        eliminated first), e.g. a damped ``I``; not cached."""
+        return factorize(matrix, *self.index_sets())
+
     def factor(self) -> SchurFactor:
         """The (cached) factorisation of ``I``."""
         if self._factor is None:
-            self._factor = factorize(self.info.matrix(), *self._index_sets())
+            self._factor = self.factorize(self.info.matrix())
         return self._factor
+
+    def invalidate(self) -> None:
+        """Drop the cached factorisation: ``I`` or ``i`` were changed from outside
+        (e.g. through ``info.set``) or the caller wants covariances refactorised."""
+        self._factor = None
+
+    def relinearise(self) -> None:
+        """Rebuild ``I`` and ``i`` from zero at the current ``x``: the gauge and scale
+        priors, the weak priors, the quaternion-norm pseudo-measurements and every stored
+        measurement (smoothing, paper III-E). Stored ``Zm`` are not gated again: the set
+        the filter accepted is a fixed problem."""
+        self.info.reset()
+        self._factor = None
+        for fid, (p, q) in self.priors.pose.items():
+            self._fuse_pose_prior(fid, p, q)
+        if self.priors.scale is not None:
+            self._fuse_scale(*self.priors.scale)
+        self.refuse_weak_priors()
+        pids = self.layout.pose_ids
+        if pids:
+            self._fuse_quat_norm(np.array(pids))
+        obs = self.store.all_features()
+        if len(obs):
+            self.fuse_features(obs, store=False, gate=False)
+        self.fuse_relative(self.store.relative, store=False)
 
     def recover(self) -> Array:
         """Solve ``I x = i`` and make the result the new linearisation point."""

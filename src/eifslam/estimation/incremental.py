@@ -117,13 +117,11 @@ class EntryMap:
 
     def sync(self, layout: StateLayout) -> list[tuple[bool, int]]:
         """Follow the layout; return ``(is_feature, offset)`` of the blocks added since."""
-        # read-only use of the layout's chronological block list (O(new blocks))
-        order = layout._order  # noqa: SLF001
         new = []
-        for kind, ident in order[self._nblocks :]:
+        for kind, ident in layout.keys_since(self._nblocks):
             isf = kind == "feature"
             new.append((isf, layout.feature_offset(ident) if isf else layout.pose_offset(ident)))
-        self._nblocks = len(order)
+        self._nblocks = layout.n_states
         if layout.dim > len(self._start):
             cap = max(layout.dim, 2 * len(self._start))
             self._start = np.concatenate([self._start, np.zeros(cap - len(self._start), np.int64)])

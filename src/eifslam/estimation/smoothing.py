@@ -43,21 +43,9 @@ class SmoothingReport:
 
 
 def relinearise(filt: InformationFilter) -> None:
-    """Rebuild ``I`` and ``i`` from zero with every stored measurement at the current ``x``."""
-    filt.info.reset()
-    filt._factor = None
-    for fid, (p, q) in filt.priors.pose.items():
-        filt._fuse_pose_prior(fid, p, q)
-    if filt.priors.scale is not None:
-        filt._fuse_scale(*filt.priors.scale)
-    filt.refuse_weak_priors()
-    pids = filt.layout.pose_ids
-    if pids:
-        filt._fuse_quat_norm(np.array(pids))
-    obs = filt.store.all_features()
-    if len(obs):  # the set the filter accepted, not gated again: a fixed problem
-        filt.fuse_features(obs, store=False, gate=False)
-    filt.fuse_relative(filt.store.relative, store=False)
+    """Rebuild ``I`` and ``i`` from zero with every stored measurement at the current ``x``
+    (:meth:`InformationFilter.relinearise`)."""
+    filt.relinearise()
 
 
 def measurement_cost(filt: InformationFilter) -> float:
@@ -120,11 +108,9 @@ def _damped_solve(filt: InformationFilter, x0: np.ndarray, lam: float) -> np.nda
     from ``x0`` in information form (``lam = 0`` is the paper's Gauss-Newton recovery)."""
     if lam == 0.0:
         return filt.factor().solve(filt.info.vector)
-    from .recovery import factorize
-
     I = filt.info.matrix()
     d = lam * I.diagonal()
-    F = factorize(I + sp.diags(d), *filt._index_sets())
+    F = filt.factorize(I + sp.diags(d))
     return F.solve(filt.info.vector + d * x0)
 
 
@@ -174,7 +160,7 @@ def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
             if n_f == 0 and n_r == 0:
                 break
             _passes(filt, max_passes, tol, rep)
-    filt._factor = None  # covariances: refactorise the undamped information on demand
+    filt.invalidate()  # covariances: refactorise the undamped information on demand
     return rep
 
 
@@ -232,7 +218,7 @@ def rescale(filt: InformationFilter, s: float) -> None:
     filt.priors.pose = {k: (p * s, q) for k, (p, q) in filt.priors.pose.items()}
     filt.priors.weak = {k: (v * s if k[0] == "feature" else np.concatenate([v[:3] * s, v[3:]]))
                         for k, v in filt.priors.weak.items()}
-    filt._factor = None
+    filt.invalidate()
 
 
 def recover_scale(filt: InformationFilter, a: tuple[str, int], b: tuple[str, int], length: float) -> float:

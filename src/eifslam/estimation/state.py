@@ -75,6 +75,21 @@ class StateLayout:
         return np.fromiter((int(t) in f for t in track_ids), bool, count=len(track_ids))
 
     @property
+    def order(self) -> tuple[tuple[str, int], ...]:
+        """``(kind, id)`` of every state, in state (chronological) order (a copy)."""
+        return tuple(self._order)
+
+    @property
+    def n_states(self) -> int:
+        """Number of states (poses and features) in the layout."""
+        return len(self._order)
+
+    def keys_since(self, start: int) -> list[tuple[str, int]]:
+        """``(kind, id)`` of the states added after the first ``start`` ones, in order
+        (``O(new states)``; to follow a growing layout)."""
+        return self._order[start:]
+
+    @property
     def pose_ids(self) -> list[int]:
         """Frame ids of the poses, in state order."""
         return [k for kind, k in self._order if kind == "pose"]
