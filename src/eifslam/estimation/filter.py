@@ -139,6 +139,23 @@ class InformationFilter:
             self.info.listeners.append(self.incremental)
         # -- end incremental recovery hook --
 
+    # -- pickling -----------------------------------------------------------------------
+    def __getstate__(self) -> dict:
+        """Pickle without the cached factorisation (SuperLU objects do not pickle; it is
+        rebuilt on demand). In incremental mode the pickled ``x`` is the complete
+        estimate (marginalised states back-substituted); this filter is not changed."""
+        state = self.__dict__.copy()
+        state["_factor"] = None
+        if self.incremental is not None and self.incremental.valid:
+            x = self._x.copy()
+            self.incremental.full_solution(x[: self.dim])
+            state["_x"] = x
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._factor = None
+
     # -- state ------------------------------------------------------------------------
     @property
     def dim(self) -> int:

@@ -264,6 +264,25 @@ class IncrementalRecovery:
         self.B = np.zeros((0, 0))
         self.xp, self.xf = np.zeros(0), np.zeros(0)
 
+    # -- pickling -----------------------------------------------------------------------
+    def __getstate__(self) -> dict:
+        """Pickle without the window and the conditionals (a rebuild's conditional holds a
+        sparse factorisation, which does not pickle): the unpickled recovery is invalid
+        and rebuilds from the full ``I`` at its next :meth:`step`. Pickle the owner's
+        complete estimate (:meth:`full_solution`) if it is needed after loading."""
+        state = self.__dict__.copy()
+        state.update(_conds=[], _pending=[], _valid=False, _S_cho=None, _S_pidx=np.zeros(0, np.int64),
+                     _Dinv=np.zeros((0, 3, 3)), _DB=np.zeros((0, 0)))
+        state["_owner"] = np.full(len(self._owner), -1, np.int64)
+        state["_pos"] = np.full(len(self._pos), -1, np.int64)
+        empty = IncrementalRecovery.__new__(IncrementalRecovery)
+        empty._reset_window()
+        state.update(empty.__dict__)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+
     # -- listener -----------------------------------------------------------------------
     def on_add(self, idx: IntArray, Lam: Array, eta: Array) -> None:
         """Record a fusion (processed at the next :meth:`step`)."""
