@@ -36,3 +36,13 @@ def test_ekf_update_reduces_only_the_touched_uncertainty():
     assert np.all(np.linalg.eigvalsh(ekf.P) > -1e-9 * np.abs(ekf.P).max())
     _, P, _ = ekf.poses()
     assert np.abs(P - sc.positions).max() < 1e-6
+
+
+def test_both_back_ends_satisfy_the_protocol_without_inheritance():
+    from eifslam.estimation.backend import Backend
+
+    rng = np.random.default_rng(3)
+    sc = synthetic.corridor_scene(2, rng, points_per_metre=5)
+    assert not issubclass(DenseEKF, InformationFilter)
+    assert isinstance(DenseEKF(sc.camera), Backend)
+    assert isinstance(InformationFilter(sc.camera), Backend)

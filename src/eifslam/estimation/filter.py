@@ -16,96 +16,37 @@ Priors and pseudo-measurements are stored with the measurements, so smoothing
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from ..geometry import models
+from ..errors import EstimatorError
 from ..geometry.camera import PinholeCamera
-from ..errors import ConfigError, EstimatorError
-from ..geometry.rotations import quat_left_matrix, quat_normalize
-from .information import InformationStore
-from .state import FEATURE_DIM, POSE_DIM, StateLayout
-from .measurements import FeatureObservations, MeasurementStore, RelativePose
-from .recovery import SchurFactor, factorize
+from ..geometry.rotations import quat_normalize
+from . import factors
+from .factors import Linearised
 from .incremental import IncrementalRecovery, TrackedInformationStore
+from .information import InformationStore
+from .measurements import FeatureObservations, MeasurementStore, PriorStore, RelativePose
+from .options import FilterConfig, Recovery, ZtForm
+from .recovery import SchurFactor, factorize
+from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout, pose_tangent_covariance, read_features, read_pose, read_poses
 
 Array = NDArray[np.float64]
 
 
-@dataclass(frozen=True)
-class FilterConfig:
-    """Settings of the information filter.
-
-    Attributes
-    ----------
-    prior_sigma : float
-        Standard deviation of the first-pose prior (position units, and quaternion units).
-    scale_prior_sigma : float
-        Relative standard deviation of the scale prior (fraction of the prior distance).
-    quat_norm_sigma : float
-        Standard deviation of the ``|q|^2 = 1`` pseudo-measurement.
-    zt_form : {"auto", "paper", "bearing"}
-        ``ZT`` model: the paper's ``[x/z, y/z]``, the non-singular bearing form, or the
-        paper's form when the measured direction is within ``zt_paper_max_angle_deg`` of
-        the optical axis and the bearing form otherwise.
-    zt_paper_max_angle_deg : float
-        Largest angle between the translation direction and the optical axis for which
-        ``auto`` uses the paper's form.
-    gate_chi2 : float or None
-        Reject a ``Zm`` whose normalised innovation squared exceeds this (2 DOF); ``None``
-        fuses everything.
-    min_depth : float
-        Reject a ``Zm`` whose predicted depth is below this (state units).
-    weak_prior_sigma : float
-        Standard deviation of a weak prior put on every new pose position and feature at
-        its initial guess, so that a state whose measurements were all rejected (gate,
-        depth) never makes ``I`` singular. Its information, ``1e-6`` by default, is
-        negligible next to any measurement's; it touches diagonal blocks only.
-    """
-
-    prior_sigma: float = 1e-6
-    scale_prior_sigma: float = 1e-6
-    quat_norm_sigma: float = 1e-3
-    zt_form: str = "auto"
-    zt_paper_max_angle_deg: float = 60.0
-    gate_chi2: float | None = None
-    min_depth: float = 1e-6
-    weak_prior_sigma: float = 1e3
-
-    def __post_init__(self) -> None:
-        for key in ("prior_sigma", "scale_prior_sigma", "quat_norm_sigma", "min_depth", "weak_prior_sigma"):
-            v = getattr(self, key)
-            if not (np.isfinite(v) and v > 0):
-                raise ConfigError(f"filter.{key} must be a positive number, got {v!r}")
-        if self.zt_form not in ("auto", "paper", "bearing"):
-            raise ConfigError(f"filter.zt_form must be auto, paper or bearing, got {self.zt_form!r}")
-        if not 0.0 < self.zt_paper_max_angle_deg < 90.0:
-            raise ConfigError("filter.zt_paper_max_angle_deg must lie in (0, 90)")
-        if self.gate_chi2 is not None and not self.gate_chi2 > 0:
-            raise ConfigError("filter.gate_chi2 must be positive or None")
-
-
-@dataclass
-class PriorStore:
-    """Priors kept for relinearisation: first pose and scale."""
-
-    pose: dict[int, tuple[Array, Array]] = field(default_factory=dict)  # fid -> (p, q)
-    scale: tuple[int, int, float] | None = None  # (fid_a, fid_b, distance)
-    weak: dict[tuple[str, int], Array] = field(default_factory=dict)  # weak priors at initial guesses
-
-
 class InformationFilter:
     """Exactly sparse EIF over camera poses and map features.
+
+    Satisfies :class:`~eifslam.estimation.backend.Backend` (as does the dense EKF
+    baseline, :class:`~eifslam.baselines.ekf.DenseEKF`).
 
     Parameters
     ----------
     camera : PinholeCamera
         Intrinsics used by ``Zm`` (pixels are undistorted).
     config : FilterConfig
-    recovery : {"incremental", "full"}
+    recovery : Recovery or {"incremental", "full"}
         What :meth:`recover_active` (the per-frame recovery) does: solve exactly an active
         window of recent states and marginalise the rest (:mod:`eifslam.incremental`;
         default, constant time per frame during an exploration, see ``docs/backend.md``),
@@ -118,7 +59,7 @@ class InformationFilter:
 
     def __init__(
         self, camera: PinholeCamera, config: FilterConfig | None = None,
-        recovery: str = "incremental", window: int = 2,
+        recovery: Recovery | str = Recovery.INCREMENTAL, window: int = 2,
     ) -> None:
         self.camera = camera
         self.config = config or FilterConfig()
@@ -129,11 +70,9 @@ class InformationFilter:
         self._x = np.zeros(64)
         self._factor: SchurFactor | None = None
         # -- incremental recovery hook (eifslam.incremental) --
-        if recovery not in ("full", "incremental"):
-            raise ConfigError(f"recovery must be 'full' or 'incremental', got {recovery!r}")
-        self.recovery = recovery
+        self.recovery = Recovery.parse(recovery, "recovery")
         self.incremental: IncrementalRecovery | None = None
-        if recovery == "incremental":
+        if self.recovery == Recovery.INCREMENTAL:
             self.incremental = IncrementalRecovery(window, window)
             self.info = TrackedInformationStore()
             self.info.listeners.append(self.incremental)
@@ -184,8 +123,8 @@ class InformationFilter:
         self._grow()
         self._x[off : off + 3], self._x[off + 3 : off + 7] = p, q
         self._factor = None
-        self._fuse_quat_norm(np.array([frame_id]))
-        self.priors.weak[("pose", int(frame_id))] = np.concatenate([p, q])
+        self._fuse(factors.quat_norm(self.layout, self.x, [frame_id], self.config.quat_norm_sigma))
+        self.priors.weak[(StateKind.POSE, int(frame_id))] = np.concatenate([p, q])
         self._fuse_weak(self.layout.pose_columns([frame_id]), np.concatenate([p, q])[None])
 
     def add_features(self, track_ids, X: Array) -> None:
@@ -197,43 +136,34 @@ class InformationFilter:
             off = self.layout.add_feature(tid)
             self._grow()
             self._x[off : off + 3] = xyz
-            self.priors.weak[("feature", int(tid))] = xyz.copy()
+            self.priors.weak[(StateKind.FEATURE, int(tid))] = xyz.copy()
         self._factor = None
         if len(X):
             self._fuse_weak(self.layout.feature_columns(list(track_ids)), X)
 
     def _fuse_weak(self, cols, X: Array) -> None:
         """Weak prior ``X ~ N(X0, weak_prior_sigma^2 I)`` on state entries ``cols`` (N, k)."""
-        w = 1.0 / self.config.weak_prior_sigma**2
-        k = cols.shape[1]
-        self.info.add(cols, np.broadcast_to(w * np.eye(k), (len(cols), k, k)).copy(), w * X)
-        self._factor = None
+        self._fuse(factors.weak_prior(cols, X, self.x, self.config.weak_prior_sigma))
 
     def refuse_weak_priors(self) -> None:
         """Fuse every weak prior again (smoothing starts from zero information)."""
-        for kind, columns in (("pose", self.layout.pose_columns), ("feature", self.layout.feature_columns)):
+        for kind, columns in ((StateKind.POSE, self.layout.pose_columns),
+                              (StateKind.FEATURE, self.layout.feature_columns)):
             keys = [i for (kd, i) in self.priors.weak if kd == kind]
             if keys:
                 self._fuse_weak(columns(keys), np.stack([self.priors.weak[(kind, i)] for i in keys]))
 
     def pose(self, frame_id: int) -> tuple[Array, Array]:
         """Estimated ``(p (3,), q_wc (4,) unit)`` of a pose."""
-        s = self.layout.pose_slice(frame_id)
-        v = self.x[s]
-        return v[:3].copy(), quat_normalize(v[3:])
+        return read_pose(self.layout, self.x, frame_id)
 
     def poses(self) -> tuple[list[int], Array, Array]:
         """Frame ids, positions ``(P, 3)`` and unit quaternions ``(P, 4)`` of every pose."""
-        ids = self.layout.pose_ids
-        cols = self.layout.pose_columns(ids) if ids else np.zeros((0, 7), np.int64)
-        v = self.x[cols]
-        return ids, v[:, :3].copy(), quat_normalize(v[:, 3:]) if len(ids) else np.zeros((0, 4))
+        return read_poses(self.layout, self.x)
 
     def features(self) -> tuple[list[int], Array]:
         """Track ids and positions ``(F, 3)`` of every map feature."""
-        ids = self.layout.feature_ids
-        cols = self.layout.feature_columns(ids) if ids else np.zeros((0, 3), np.int64)
-        return ids, self.x[cols].copy()
+        return read_features(self.layout, self.x)
 
     # -- priors -----------------------------------------------------------------------
     def fix_pose(self, frame_id: int) -> None:
@@ -253,42 +183,19 @@ class InformationFilter:
         self._fuse_scale(*self.priors.scale)
 
     def _fuse_pose_prior(self, fid: int, p: Array, q: Array) -> None:
-        cols = self.layout.pose_columns([fid])  # (1, 7)
-        w = 1.0 / self.config.prior_sigma**2
-        z = np.concatenate([p, q])
-        Lam = w * np.eye(7)[None]
-        self.info.add(cols, Lam, (w * z)[None])
-        self._factor = None
+        self._fuse(factors.pose_prior(self.layout, self.x, fid, p, q, self.config.prior_sigma))
 
     def _fuse_scale(self, fa: int, fb: int, d: float) -> None:
-        ca = self.layout.pose_columns([fa])[:, :3]
-        cb = self.layout.pose_columns([fb])[:, :3]
-        a, b = self.x[ca], self.x[cb]
-        h, Ja, Jb = models.distance_model(a, b)
-        J = np.concatenate([Ja, Jb], axis=2)
-        w = np.array([[[1.0 / (self.config.scale_prior_sigma * d) ** 2]]])
-        self._add_linearised(np.concatenate([ca, cb], 1), J, w, (d - h)[:, None])
+        self._fuse(factors.scale_prior(self.layout, self.x, fa, fb, d, self.config.scale_prior_sigma))
 
     def _fuse_quat_norm(self, fids) -> None:
-        cols = self.layout.pose_columns(list(fids))[:, 3:]
-        h, J = models.quat_norm_model(self.x[cols])
-        w = np.full((len(cols), 1, 1), 1.0 / self.config.quat_norm_sigma**2)
-        self._add_linearised(cols, J, w, (1.0 - h)[:, None])
+        self._fuse(factors.quat_norm(self.layout, self.x, fids, self.config.quat_norm_sigma))
 
     # -- fusion (paper eq. 8) -----------------------------------------------------------
-    def _add_linearised(self, idx, J: Array, W: Array, innov: Array) -> None:
-        """``I += J^T W J``, ``i += J^T W (innov + J x)`` for N measurements.
-
-        Parameters
-        ----------
-        idx : (N, k) state indices; J : (N, m, k); W : (N, m, m) information;
-        innov : (N, m) ``z - h(x)``.
-        """
-        Jt = np.swapaxes(J, 1, 2)
-        JtW = Jt @ W
-        Lam = JtW @ J
-        eta = np.einsum("nkm,nm->nk", JtW, innov + np.einsum("nmk,nk->nm", J, self.x[idx]))
-        self.info.add(idx, Lam, eta)
+    def _fuse(self, lin: Linearised) -> None:
+        """``I += J^T W J``, ``i += J^T W (innov + J x)`` for a linearised batch."""
+        Lam, eta = lin.information(self.x)
+        self.info.add(lin.idx, Lam, eta)
         self._factor = None
 
     def linearise_features(self, obs: FeatureObservations, gate: bool = True):
@@ -301,18 +208,7 @@ class InformationFilter:
         W : (N, 2, 2) information; innov : (N, 2) ``z - h(x)``; chi2 : (N,) normalised
         innovation squared (``inf`` where not finite or behind the camera).
         """
-        pc = self.layout.pose_columns(obs.pose)
-        fc = self.layout.feature_columns(obs.feature)
-        x, c = self.x, self.camera
-        h, Jp, Jf, depth = models.feature_model(x[pc[:, :3]], x[pc[:, 3:]], x[fc], c.fx, c.fy, c.cx, c.cy)
-        innov = obs.uv - h
-        chi2 = np.sum(innov**2, 1) / obs.sigma_px**2
-        ok = (depth > self.config.min_depth) & np.isfinite(chi2)
-        chi2 = np.where(ok, chi2, np.inf)
-        if gate and self.config.gate_chi2 is not None:
-            ok &= chi2 <= self.config.gate_chi2
-        W = np.eye(2)[None] / (obs.sigma_px**2)[:, None, None]
-        return ok, np.concatenate([pc, fc], 1), np.concatenate([Jp, Jf], 2), W, innov, chi2
+        return factors.features(self.layout, self.x, self.camera, self.config, obs, gate)
 
     def fuse_features(self, obs: FeatureObservations, store: bool = True, gate: bool = True) -> FeatureObservations:
         """Fuse a batch of ``Zm``; return the measurements actually fused.
@@ -325,18 +221,10 @@ class InformationFilter:
         ok, idx, J, W, innov, _ = self.linearise_features(obs, gate)
         if not np.all(ok):
             obs, idx, J, W, innov = obs.subset(ok), idx[ok], J[ok], W[ok], innov[ok]
-        self._add_linearised(idx, J, W, innov)
+        self._fuse(Linearised(idx, J, W, innov))
         if store and len(obs):
             self.store.features.append(obs)
         return obs
-
-    def _zt_uses_paper(self, t: Array) -> Array:
-        form = self.config.zt_form
-        if form == "paper":
-            return np.ones(len(t), bool)
-        if form == "bearing":
-            return np.zeros(len(t), bool)
-        return t[:, 2] >= np.cos(np.radians(self.config.zt_paper_max_angle_deg))
 
     def linearise_relative(self, rps: list[RelativePose]):
         """Linearise ``ZR`` and ``ZT`` jointly at the current estimate.
@@ -346,40 +234,13 @@ class InformationFilter:
         idx : (N, 14) state indices ``[pose i, pose j]``; J : (N, 5, 14);
         W : (N, 5, 5) information of the joint measurement; innov : (N, 5).
         """
-        ci = self.layout.pose_columns([r.i for r in rps])
-        cj = self.layout.pose_columns([r.j for r in rps])
-        qm = np.stack([r.q_ij for r in rps])
-        tm = np.stack([r.t_ij for r in rps])
-        cov = np.stack([r.cov for r in rps])
-        x = self.x
-        hR, JRi, JRj = models.rotation_model(x[ci[:, 3:]], x[cj[:, 3:]], qm)
-        N = len(rps)
-        J = np.zeros((N, 5, 14))
-        J[:, :3, 3:7], J[:, :3, 10:14] = JRi, JRj
-        innov = np.zeros((N, 5))
-        innov[:, :3] = -hR
-        paper = self._zt_uses_paper(tm)
-        hB, JBi, JBj = models.bearing_model(x[ci[:, :3]], x[ci[:, 3:]], x[cj[:, :3]], tm)
-        T = np.broadcast_to(np.eye(5), (N, 5, 5)).copy()
-        J[:, 3:, :7], J[:, 3:, 7:] = JBi, JBj
-        innov[:, 3:] = -hB
-        if np.any(paper):
-            hT, JTi, JTj = models.translation_model(x[ci[paper, :3]], x[ci[paper, 3:]], x[cj[paper, :3]])
-            zT, G = models.zt_paper_covariance(tm[paper])
-            J[paper, 3:, :7], J[paper, 3:, 7:] = JTi, JTj
-            innov[paper, 3:] = zT - hT
-            T[paper, 3:, 3:] = G
-        Q = T @ cov @ np.swapaxes(T, 1, 2)
-        W = np.linalg.inv(Q)
-        if not np.all(np.isfinite(W)) or not np.all(np.isfinite(innov)):
-            raise EstimatorError("relative pose measurement produced a non-finite information")
-        return np.concatenate([ci, cj], 1), J, 0.5 * (W + np.swapaxes(W, 1, 2)), innov
+        return factors.relative(self.layout, self.x, self.config, rps)
 
     def fuse_relative(self, rps: list[RelativePose], store: bool = True) -> None:
         """Fuse ``ZR`` and ``ZT`` of each relative pose jointly (5x5 covariance)."""
         if not rps:
             return
-        self._add_linearised(*self.linearise_relative(rps))
+        self._fuse(Linearised(*self.linearise_relative(rps)))
         if store:
             self.store.relative.extend(rps)
 
@@ -483,19 +344,11 @@ class InformationFilter:
         C = self.incremental.pose_covariance(cols) if self.incremental is not None else None
         if C is None:
             C = self.covariance(cols)
-        q = self.x[cols[3:]]
-        n = np.linalg.norm(q)
-        qn = q / n
-        # dtheta = 2 vec(q_est^* ⊗ q) for a small change of the normalised quaternion
-        G = 2.0 * quat_left_matrix(qn * np.array([1, -1, -1, -1]))[1:] @ ((np.eye(4) - np.outer(qn, qn)) / n)
-        T = np.zeros((6, 7))
-        T[:3, :3] = np.eye(3)
-        T[3:, 3:] = G
-        return T @ C @ T.T
+        return pose_tangent_covariance(C, self.x[cols[3:]])
 
     def feature_covariance(self, track_id: int) -> Array:
         """3x3 covariance of a map feature."""
         return self.covariance(self.layout.feature_columns([track_id])[0])
 
 
-__all__ = ["FilterConfig", "InformationFilter", "POSE_DIM", "FEATURE_DIM"]
+__all__ = ["FilterConfig", "InformationFilter", "PriorStore", "Recovery", "ZtForm", "POSE_DIM", "FEATURE_DIM"]

@@ -143,3 +143,12 @@ class MeasurementStore:
     def all_features(self) -> FeatureObservations:
         """Every stored ``Zm`` as one batch."""
         return FeatureObservations.concatenate(self.features)
+
+
+@dataclass
+class PriorStore:
+    """Priors kept for relinearisation: gauge poses, the scale, weak priors at initial guesses."""
+
+    pose: dict[int, tuple[Array, Array]] = field(default_factory=dict)  # fid -> (p, q)
+    scale: tuple[int, int, float] | None = None  # (fid_a, fid_b, distance)
+    weak: dict[tuple[str, int], Array] = field(default_factory=dict)  # (kind, id) -> initial guess

@@ -3,20 +3,55 @@
 The state (paper eq. 1) is ``X = (Xc1, Xc2, ..., Xf1, Xf2, ...)`` with poses
 ``Xc = [p (3), q (4)]`` and features ``Xf = [x, y, z]``. Entries are stored in the order
 they were added (chronological), which keeps the information matrix of an exploration
-close to banded. Poses are keyed by frame id, features by track id.
+close to banded. Poses are keyed by frame id, features by track id; a state is named by
+a :class:`StateKey` ``(kind, id)``, which is a tuple, so ``("pose", 3)`` names it too.
+
+The ``read_*`` functions read poses and features out of an estimate ``x`` through a
+layout; both back ends use them.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import EstimatorError
+from ..geometry.rotations import quat_left_matrix, quat_normalize
+from .options import _StrEnum
 
+Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 POSE_DIM = 7
 FEATURE_DIM = 3
+
+
+class StateKind(_StrEnum):
+    """Kind of a state: a camera pose ``[p (3), q (4)]`` or a map feature ``[x, y, z]``."""
+
+    POSE = "pose"
+    FEATURE = "feature"
+
+
+class StateKey(NamedTuple):
+    """Name of one state: ``(kind, id)``, the id a frame id (poses) or a track id (features).
+
+    A plain tuple ``("pose", 3)`` compares (and hashes) equal to ``StateKey(StateKind.POSE, 3)``.
+    """
+
+    kind: StateKind
+    id: int
+
+    @staticmethod
+    def of(key: "tuple[str, int]") -> "StateKey":
+        """Normalise ``(kind, id)`` (strings accepted); :class:`EstimatorError` on an unknown kind."""
+        kind, ident = key
+        try:
+            return StateKey(StateKind(kind), int(ident))
+        except ValueError:
+            raise EstimatorError(f"unknown state kind {kind!r}; use 'feature' or 'pose'") from None
 
 
 class StateLayout:
@@ -36,7 +71,7 @@ class StateLayout:
     def __init__(self) -> None:
         self._pose: dict[int, int] = {}
         self._feature: dict[int, int] = {}
-        self._order: list[tuple[str, int]] = []
+        self._order: list[StateKey] = []
         self.dim = 0
 
     # -- adding -------------------------------------------------------------------
@@ -47,7 +82,7 @@ class StateLayout:
             raise EstimatorError(f"pose {frame_id} is already in the state")
         off = self.dim
         self._pose[frame_id] = off
-        self._order.append(("pose", frame_id))
+        self._order.append(StateKey(StateKind.POSE, frame_id))
         self.dim += POSE_DIM
         return off
 
@@ -58,7 +93,7 @@ class StateLayout:
             raise EstimatorError(f"feature {track_id} is already in the state")
         off = self.dim
         self._feature[track_id] = off
-        self._order.append(("feature", track_id))
+        self._order.append(StateKey(StateKind.FEATURE, track_id))
         self.dim += FEATURE_DIM
         return off
 
@@ -75,7 +110,7 @@ class StateLayout:
         return np.fromiter((int(t) in f for t in track_ids), bool, count=len(track_ids))
 
     @property
-    def order(self) -> tuple[tuple[str, int], ...]:
+    def order(self) -> tuple[StateKey, ...]:
         """``(kind, id)`` of every state, in state (chronological) order (a copy)."""
         return tuple(self._order)
 
@@ -84,7 +119,7 @@ class StateLayout:
         """Number of states (poses and features) in the layout."""
         return len(self._order)
 
-    def keys_since(self, start: int) -> list[tuple[str, int]]:
+    def keys_since(self, start: int) -> list[StateKey]:
         """``(kind, id)`` of the states added after the first ``start`` ones, in order
         (``O(new states)``; to follow a growing layout)."""
         return self._order[start:]
@@ -92,12 +127,12 @@ class StateLayout:
     @property
     def pose_ids(self) -> list[int]:
         """Frame ids of the poses, in state order."""
-        return [k for kind, k in self._order if kind == "pose"]
+        return [k for kind, k in self._order if kind == StateKind.POSE]
 
     @property
     def feature_ids(self) -> list[int]:
         """Track ids of the features, in state order."""
-        return [k for kind, k in self._order if kind == "feature"]
+        return [k for kind, k in self._order if kind == StateKind.FEATURE]
 
     @property
     def n_poses(self) -> int:
@@ -150,12 +185,54 @@ class StateLayout:
             m[off + 3 : off + POSE_DIM] = False
         return m
 
-    def blocks(self) -> list[tuple[str, int, int, int]]:
+    def position(self, key: "tuple[str, int]", x: Array) -> Array:
+        """Position ``(3,)`` of state ``key`` (a feature, or a pose's centre) in ``x`` (a view)."""
+        kind, ident = StateKey.of(key)
+        if kind == StateKind.FEATURE:
+            return x[self.feature_slice(ident)]
+        return x[self.pose_slice(ident)][:3]
+
+    def blocks(self) -> list[tuple[StateKind, int, int, int]]:
         """``(kind, id, offset, size)`` of every state in order."""
         out = []
         for kind, k in self._order:
-            if kind == "pose":
+            if kind == StateKind.POSE:
                 out.append((kind, k, self._pose[k], POSE_DIM))
             else:
                 out.append((kind, k, self._feature[k], FEATURE_DIM))
         return out
+
+
+def read_pose(layout: StateLayout, x: Array, frame_id: int) -> tuple[Array, Array]:
+    """``(p (3,), q_wc (4,) unit)`` of a pose in the estimate ``x`` (copies)."""
+    v = x[layout.pose_slice(frame_id)]
+    return v[:3].copy(), quat_normalize(v[3:])
+
+
+def read_poses(layout: StateLayout, x: Array) -> tuple[list[int], Array, Array]:
+    """Frame ids, positions ``(P, 3)`` and unit quaternions ``(P, 4)`` of every pose in ``x``."""
+    ids = layout.pose_ids
+    cols = layout.pose_columns(ids) if ids else np.zeros((0, 7), np.int64)
+    v = x[cols]
+    return ids, v[:, :3].copy(), quat_normalize(v[:, 3:]) if len(ids) else np.zeros((0, 4))
+
+
+def read_features(layout: StateLayout, x: Array) -> tuple[list[int], Array]:
+    """Track ids and positions ``(F, 3)`` of every map feature in ``x``."""
+    ids = layout.feature_ids
+    cols = layout.feature_columns(ids) if ids else np.zeros((0, 3), np.int64)
+    return ids, x[cols].copy()
+
+
+def pose_tangent_covariance(C: Array, q: Array) -> Array:
+    """Map the 7x7 covariance ``C`` of a pose block ``[p, q]`` to the 6x6 covariance of
+    ``[p, dtheta]``; ``dtheta`` (rad) is the right-multiplied rotation error in the camera
+    frame (``R_true = R_est @ Exp(dtheta)``), ``q (4,)`` the (unnormalised) estimate."""
+    n = np.linalg.norm(q)
+    qn = q / n
+    # dtheta = 2 vec(q_est^* ⊗ q) for a small change of the normalised quaternion
+    G = 2.0 * quat_left_matrix(qn * np.array([1, -1, -1, -1]))[1:] @ ((np.eye(4) - np.outer(qn, qn)) / n)
+    T = np.zeros((6, 7))
+    T[:3, :3] = np.eye(3)
+    T[3:, 3:] = G
+    return T @ C @ T.T

@@ -1,0 +1,109 @@
+"""Typed options of the estimation layer: :class:`FilterConfig`, :class:`ZtForm`, :class:`Recovery`.
+
+The enums are ``str``-valued: they accept and compare equal to the plain strings of
+configuration files (``ZtForm("auto") == "auto"``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+from ..errors import ConfigError
+
+
+class _StrEnum(str, Enum):
+    """A ``str``-valued enum that prints as its value."""
+
+    def __str__(self) -> str:
+        return str(self.value)
+
+    @classmethod
+    def parse(cls, value: "str | _StrEnum", what: str):
+        """The member whose value is ``value``; :class:`ConfigError` naming ``what`` otherwise."""
+        try:
+            return cls(value)
+        except ValueError:
+            allowed = ", ".join(m.value for m in cls)
+            raise ConfigError(f"{what} must be one of {allowed}, got {value!r}") from None
+
+
+class ZtForm(_StrEnum):
+    """Model of the translation-direction measurement ``ZT``.
+
+    ``PAPER``: the paper's ``[x/z, y/z]``; ``BEARING``: the non-singular bearing form;
+    ``AUTO``: the paper's form within ``zt_paper_max_angle_deg`` of the optical axis,
+    the bearing form otherwise.
+    """
+
+    AUTO = "auto"
+    PAPER = "paper"
+    BEARING = "bearing"
+
+
+class Recovery(_StrEnum):
+    """Per-frame state recovery of :class:`~eifslam.estimation.filter.InformationFilter`.
+
+    ``INCREMENTAL``: exact over an active window, the rest marginalised
+    (:mod:`eifslam.estimation.incremental`); ``FULL``: the full sparse solve.
+    """
+
+    INCREMENTAL = "incremental"
+    FULL = "full"
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Settings of the information filter.
+
+    Attributes
+    ----------
+    prior_sigma : float
+        Standard deviation of the first-pose prior (position units, and quaternion units).
+    scale_prior_sigma : float
+        Relative standard deviation of the scale prior (fraction of the prior distance).
+    quat_norm_sigma : float
+        Standard deviation of the ``|q|^2 = 1`` pseudo-measurement.
+    zt_form : ZtForm or {"auto", "paper", "bearing"}
+        ``ZT`` model: the paper's ``[x/z, y/z]``, the non-singular bearing form, or the
+        paper's form when the measured direction is within ``zt_paper_max_angle_deg`` of
+        the optical axis and the bearing form otherwise.
+    zt_paper_max_angle_deg : float
+        Largest angle between the translation direction and the optical axis for which
+        ``auto`` uses the paper's form.
+    gate_chi2 : float or None
+        Reject a ``Zm`` whose normalised innovation squared exceeds this (2 DOF); ``None``
+        fuses everything.
+    min_depth : float
+        Reject a ``Zm`` whose predicted depth is below this (state units).
+    weak_prior_sigma : float
+        Standard deviation of a weak prior put on every new pose position and feature at
+        its initial guess, so that a state whose measurements were all rejected (gate,
+        depth) never makes ``I`` singular. Its information, ``1e-6`` by default, is
+        negligible next to any measurement's; it touches diagonal blocks only.
+    """
+
+    prior_sigma: float = 1e-6
+    scale_prior_sigma: float = 1e-6
+    quat_norm_sigma: float = 1e-3
+    zt_form: ZtForm = ZtForm.AUTO
+    zt_paper_max_angle_deg: float = 60.0
+    gate_chi2: float | None = None
+    min_depth: float = 1e-6
+    weak_prior_sigma: float = 1e3
+
+    def __post_init__(self) -> None:
+        for key in ("prior_sigma", "scale_prior_sigma", "quat_norm_sigma", "min_depth", "weak_prior_sigma"):
+            v = getattr(self, key)
+            if not (np.isfinite(v) and v > 0):
+                raise ConfigError(f"filter.{key} must be a positive number, got {v!r}")
+        object.__setattr__(self, "zt_form", ZtForm.parse(self.zt_form, "filter.zt_form"))
+        if not 0.0 < self.zt_paper_max_angle_deg < 90.0:
+            raise ConfigError("filter.zt_paper_max_angle_deg must lie in (0, 90)")
+        if self.gate_chi2 is not None and not self.gate_chi2 > 0:
+            raise ConfigError("filter.gate_chi2 must be positive or None")
+
+
+__all__ = ["FilterConfig", "Recovery", "ZtForm"]
