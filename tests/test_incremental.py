@@ -201,7 +201,7 @@ def test_indefinite_window_is_solved_without_a_rebuild(monkeypatch):
     """When the Cholesky factorisation of the window fails (a numerically indefinite
     pose Schur complement, as on long real sequences), the window is solved by LDL^T and
     stays valid: no rebuild, no fallback."""
-    import eifslam.estimation.incremental as incmod
+    import eifslam.estimation.window as incmod
 
     sc, m = scene(20, 9)
     f = InformationFilter(sc.camera, recovery="incremental", window=1)

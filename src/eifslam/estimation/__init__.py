@@ -3,10 +3,14 @@
 * :mod:`.state`: the state layout (which entries of ``x`` belong to which pose or feature).
 * :mod:`.measurements`: ``Zm`` batches, ``ZR``/``ZT`` relative poses and their store.
 * :mod:`.information`: the information matrix ``I`` and vector ``i`` as they are summed.
+* :mod:`.options`: :class:`~.options.FilterConfig` and the typed options ``ZtForm``, ``Recovery``.
+* :mod:`.factors`: every measurement kind linearised at an estimate (shared by the back ends).
 * :mod:`.recovery`: sparse Cholesky with features eliminated first (the full solve).
-* :mod:`.incremental`: exact recovery over an active window, the rest marginalised.
+* :mod:`.window`: the active window's marginal information and the conditionals of what left it.
+* :mod:`.incremental`: the incremental recovery driver (exact over the window, the rest marginalised).
 * :mod:`.filter`: :class:`~.filter.InformationFilter`, Algorithm 1's fusion (eq. 8).
-* :mod:`.smoothing`: relinearise-and-recover (III-E) and scale recovery (V).
+* :mod:`.backend`: the :class:`~.backend.Backend` protocol the EIF and the dense EKF satisfy.
+* :mod:`.smoothing`: relinearise-and-recover (III-E); :mod:`.scale`: scale recovery (V).
 * :mod:`.initialisation`, :mod:`.localisation`: initial guesses of poses and features.
 
 Imports only :mod:`eifslam.geometry` and :mod:`eifslam.errors`; never OpenCV or matplotlib.

@@ -30,7 +30,7 @@ from .information import InformationStore
 from .measurements import FeatureObservations, MeasurementStore, PriorStore, RelativePose
 from .options import FilterConfig, Recovery, ZtForm
 from .recovery import SchurFactor, factorize
-from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout, pose_tangent_covariance, read_features, read_pose, read_poses
+from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout, pose_tangent_covariance, read_features, read_pose, read_poses  # noqa: F401
 
 Array = NDArray[np.float64]
 

@@ -45,12 +45,12 @@ from typing import Protocol
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
-from scipy.linalg import cho_factor, cho_solve, solve
 
 from ..errors import ConfigError, EstimatorError
 from .information import InformationStore
-from .state import FEATURE_DIM, POSE_DIM, StateLayout
 from .recovery import factorize
+from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout
+from .window import ActiveWindow, RecoveryStats, Conditional
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -119,7 +119,7 @@ class EntryMap:
         """Follow the layout; return ``(is_feature, offset)`` of the blocks added since."""
         new = []
         for kind, ident in layout.keys_since(self._nblocks):
-            isf = kind == "feature"
+            isf = kind == StateKind.FEATURE
             new.append((isf, layout.feature_offset(ident) if isf else layout.pose_offset(ident)))
         self._nblocks = layout.n_states
         if layout.dim > len(self._start):
@@ -135,99 +135,12 @@ class EntryMap:
 
 
 @dataclass
-class RecoveryStats:
-    """Counters of :class:`IncrementalRecovery`.
-
-    Attributes
-    ----------
-    steps : recoveries done.
-    fallbacks : steps where a measurement touched a marginalised state that could not be
-        re-activated (full rebuild), plus solves that failed (see
-        :meth:`eifslam.filter.InformationFilter.recover_active`).
-    rebuilds : full rebuilds for any reason (fallbacks, ``I`` reset/set, first use).
-    reactivations : steps where a measurement touched marginalised states and they were
-        re-activated (their conditionals undone, no rebuild).
-    reactivated_poses, reactivated_features : states brought back into the window so far
-        (the touched ones and the later-eliminated poses they were conditioned on).
-    marginalised_poses, marginalised_features : states eliminated so far (re-eliminations
-        included).
-    window_poses, window_features : size of the active window after the last step.
-    max_window_poses : largest number of active poses solved in one step.
-    indefinite_solves : steps whose pose Schur complement was numerically indefinite
-        (solved by ``LDL^T`` instead of Cholesky; see :meth:`IncrementalRecovery._solve`).
-    """
-
-    steps: int = 0
-    fallbacks: int = 0
-    rebuilds: int = 0
-    reactivations: int = 0
-    reactivated_poses: int = 0
-    reactivated_features: int = 0
-    marginalised_poses: int = 0
-    marginalised_features: int = 0
-    window_poses: int = 0
-    window_features: int = 0
-    max_window_poses: int = 0
-    indefinite_solves: int = 0
-
-
-@dataclass
-class _Conditional:
-    """``x[idx] = solve(b - C @ x[cidx])``; ``solve`` is 3x3 blocks, a Cholesky or a factor.
-
-    Attributes
-    ----------
-    idx : (m,) state entries eliminated.
-    b : (m,) their information vector at elimination.
-    C : (m, c) their information coupling to the separator ``cidx`` (dense, or CSR for
-        a rebuild).
-    cidx : (c,) separator: entries that were active when ``idx`` was eliminated.
-    Dinv : (m/3, 3, 3) features: inverses of the 3x3 information blocks ``A``.
-    chol : poses: Cholesky factor of ``A`` (``cho_factor``).
-    factor : rebuild: factorisation of the eliminated part (cannot be undone).
-    A : (m/3, 3, 3) features or (m, m) poses: the eliminated information block, kept so
-        that the elimination can be undone exactly (:meth:`IncrementalRecovery._reactivate`).
-    """
-
-    idx: IntArray
-    b: Array
-    C: Array | sp.csr_matrix
-    cidx: IntArray
-    Dinv: Array | None = None
-    chol: tuple | None = None
-    factor: object | None = None
-    A: Array | None = None
-
-    def apply(self, x: Array) -> None:
-        r = self.b - self.C @ x[self.cidx] if len(self.cidx) else self.b.copy()
-        if self.Dinv is not None:
-            x[self.idx] = np.einsum("fij,fj->fi", self.Dinv, r.reshape(-1, 3)).ravel()
-        elif self.chol is not None:
-            x[self.idx] = cho_solve(self.chol, r)
-        else:
-            x[self.idx] = self.factor.solve(r)
-
-
-def _scatter_add(A: Array, flat: IntArray, v: Array) -> None:
-    """``A.flat[flat] += v`` (C order) with repeated indices summed, in ``O(len(v) log len(v))``
-    (not ``O(A.size)``: the window's ``P`` has up to ~10^6 entries)."""
-    if len(v):
-        u, inv = np.unique(flat, return_inverse=True)
-        A[np.unravel_index(u, A.shape)] += np.bincount(inv.ravel(), v, minlength=len(u))  # u unique
-
-
-def _spd_inverse_3x3(D: Array) -> Array:
-    """Inverses of ``(F, 3, 3)`` blocks; raises if a block is not positive definite."""
-    try:
-        np.linalg.cholesky(D)
-    except np.linalg.LinAlgError:
-        raise EstimatorError("a feature has no information in some direction (seen from one pose only?)") from None
-    return np.linalg.inv(D)
-
-
-@dataclass
-class IncrementalRecovery:
+class IncrementalRecovery(ActiveWindow):
     """Exact recovery of ``I x = i`` restricted to an active window, updated per step.
+
+    The driver: it follows the layout and the fusions, decides what to rebuild,
+    re-activate and marginalise; the window and its conditionals
+    (:class:`~eifslam.estimation.window.ActiveWindow`) do the algebra.
 
     Parameters
     ----------
@@ -253,16 +166,8 @@ class IncrementalRecovery:
         self._owner = np.zeros(0, np.int64)  # slot in _conds of a marginalised entry, else -1
         self._pending: list[tuple[IntArray, Array, Array]] = []
         self._valid = False
-        self._conds: list[_Conditional | None] = []  # elimination order; None once undone
+        self._conds: list[Conditional | None] = []  # elimination order; None once undone
         self._reset_window()
-
-    def _reset_window(self) -> None:
-        self.pidx = np.zeros(0, np.int64)
-        self.fidx = np.zeros(0, np.int64)
-        self.P, self.bp = np.zeros((0, 0)), np.zeros(0)
-        self.D, self.bf = np.zeros((0, 3, 3)), np.zeros(0)
-        self.B = np.zeros((0, 0))
-        self.xp, self.xf = np.zeros(0), np.zeros(0)
 
     # -- pickling -----------------------------------------------------------------------
     def __getstate__(self) -> dict:
@@ -299,11 +204,6 @@ class IncrementalRecovery:
     def valid(self) -> bool:
         """False once ``I`` was replaced wholesale and until the next step rebuilds."""
         return self._valid
-
-    @property
-    def active_indices(self) -> IntArray:
-        """State indices of the active window (poses then features)."""
-        return np.concatenate([self.pidx, self.fidx])
 
     def step(self, layout: StateLayout, info: InformationStore, x: Array) -> None:
         """Fold the new fusions in, solve the window into ``x``, marginalise old states.
@@ -346,286 +246,6 @@ class IncrementalRecovery:
         self._marginalise(s)
         st.window_poses, st.window_features = len(self.pidx) // POSE_DIM, len(self.fidx) // FEATURE_DIM
 
-    def pose_covariance(self, cols: IntArray) -> Array | None:
-        """Marginal covariance of active pose entries ``cols`` (k,) from the window.
-
-        The window holds the exact marginal information of its states, so the block of
-        the inverse of its pose Schur complement is the exact marginal covariance.
-        Returns None when an entry is not an active pose or the window is stale.
-        """
-        if not self._valid or getattr(self, "_S_cho", None) is None:
-            return None
-        where = {int(v): i for i, v in enumerate(self._S_pidx)}  # the window as solved
-        pos = [where.get(int(c), -1) for c in cols]
-        if min(pos) < 0:
-            return None
-        E = np.zeros((len(self._S_pidx), len(pos)))
-        E[pos, np.arange(len(pos))] = 1.0
-        C = cho_solve(self._S_cho, E)[pos]
-        return 0.5 * (C + C.T)
-
-    def full_solution(self, x: Array) -> Array:
-        """Back-substitute every marginalised state into ``x`` (in place) in ``O(n)``.
-
-        ``x`` must hold the current window solution (as :meth:`step` left it); entries
-        added to the layout after the last step are left untouched.
-        """
-        if len(self.xp) != len(self.pidx) or len(self.xf) != len(self.fidx):
-            return x  # the window changed without a solve: nothing consistent to add
-        x[self.pidx], x[self.fidx] = self.xp, self.xf
-        for c in reversed(self._conds):
-            if c is not None:
-                c.apply(x)
-        return x
-
-    # -- window maintenance -------------------------------------------------------------
-    def _append(self, new: list[tuple[bool, int]]) -> None:
-        """New states join the window with zero information."""
-        if not new:
-            return
-        pn = np.concatenate([np.arange(o, o + POSE_DIM) for f, o in new if not f] or [np.zeros(0, np.int64)])
-        fn = np.concatenate([np.arange(o, o + FEATURE_DIM) for f, o in new if f] or [np.zeros(0, np.int64)])
-        p0, f0 = len(self.pidx), len(self.fidx)
-        p1, f1 = p0 + len(pn), f0 + len(fn)
-        if len(pn):
-            P = np.zeros((p1, p1))
-            P[:p0, :p0] = self.P
-            self.P, self.bp = P, np.concatenate([self.bp, np.zeros(len(pn))])
-            self.pidx = np.concatenate([self.pidx, pn])
-        self.D = np.concatenate([self.D, np.zeros((len(fn) // 3, 3, 3))])
-        self.bf = np.concatenate([self.bf, np.zeros(len(fn))])
-        self.fidx = np.concatenate([self.fidx, fn])
-        B = np.zeros((f1, p1))
-        B[:f0, :p0] = self.B
-        self.B = B
-        self._pos[pn] = np.arange(p0, p1)
-        self._pos[fn] = np.arange(f0, f1)
-
-    def _route(self, idx: IntArray, Lam: Array, eta: Array) -> None:
-        """Add ``N`` blocks ``(idx (N,k), Lam (N,k,k), eta (N,k))`` into the window."""
-        k = idx.shape[1]
-        r = np.repeat(idx, k, axis=1).ravel()
-        c = np.tile(idx, (1, k)).ravel()
-        v = Lam.ravel()
-        isf = self._map.is_feature
-        fr, fc = isf[r], isf[c]
-        pr, pc = self._pos[r], self._pos[c]
-        m = ~fr & ~fc
-        _scatter_add(self.P, pr[m] * self.P.shape[1] + pc[m], v[m])
-        m = fr & ~fc
-        _scatter_add(self.B, pr[m] * self.B.shape[1] + pc[m], v[m])
-        m = fr & fc
-        if np.any(self._map.start[r[m]] != self._map.start[c[m]]):
-            raise EstimatorError("two features share a measurement: the information matrix is not of SLAM form")
-        _scatter_add(self.D, 3 * pr[m] + pc[m] % 3, v[m])  # D[f, a, c] at 9 f + 3 a + c
-        e, ev = idx.ravel(), eta.ravel()
-        fe = isf[e]
-        self.bp += np.bincount(self._pos[e[~fe]], ev[~fe], minlength=len(self.bp))
-        self.bf += np.bincount(self._pos[e[fe]], ev[fe], minlength=len(self.bf))
-
-    def _solve(self) -> None:
-        """``x`` of the window: Schur complement onto the poses, dense Cholesky.
-
-        When the Cholesky factorisation fails (the pose Schur complement is numerically
-        indefinite: ``I`` itself is then too ill-conditioned for any Cholesky, the full
-        sparse solve meets negative pivots as well), the same system is solved by a
-        symmetric indefinite factorisation (Bunch-Kaufman ``LDL^T``) and the event is
-        counted in :attr:`RecoveryStats.indefinite_solves`. The window stays valid: it is
-        the exact marginal information of its states, rebuilding it would give the same
-        matrix.
-        """
-        F, npw = len(self.D), len(self.pidx)
-        self._Dinv = _spd_inverse_3x3(self.D) if F else np.zeros((0, 3, 3))
-        B3 = self.B.reshape(F, 3, npw)
-        self._DB = (self._Dinv @ B3).reshape(3 * F, npw)
-        Dbf = np.einsum("fij,fj->fi", self._Dinv, self.bf.reshape(F, 3)).ravel()
-        S = self.P - self.B.T @ self._DB
-        r = self.bp - self.B.T @ Dbf
-        self._S_cho, self._S_pidx = None, self.pidx.copy()
-        if npw:
-            S = 0.5 * (S + S.T)
-            try:
-                self._S_cho = cho_factor(S, lower=True, check_finite=False)
-                xp = cho_solve(self._S_cho, r)
-            except np.linalg.LinAlgError:
-                try:
-                    xp = solve(S, r, assume_a="sym", check_finite=False)
-                except np.linalg.LinAlgError:
-                    raise EstimatorError("information matrix is singular; is the gauge fixed?") from None
-                self.stats.indefinite_solves += 1
-        else:
-            xp = r
-        xf = Dbf - np.einsum("fij,fj->fi", self._Dinv, (self.B @ xp).reshape(F, 3)).ravel()
-        if not (np.all(np.isfinite(xp)) and np.all(np.isfinite(xf))):
-            raise EstimatorError("state recovery produced non-finite values")
-        self.xp, self.xf = xp, xf
-
-    def _marginalise(self, s: int) -> None:
-        """Eliminate stale features, then stale poses no active feature is coupled to."""
-        last = self._last
-        fstale = (s - last[self.fidx[::3]]) >= self.feature_window
-        if np.any(fstale):
-            rows = np.repeat(fstale, 3)
-            Bm, DBm = self.B[rows], self._DB[rows]
-            self.P -= Bm.T @ DBm
-            Dinv_m = self._Dinv[fstale]
-            self.bp -= Bm.T @ np.einsum("fij,fj->fi", Dinv_m, self.bf[rows].reshape(-1, 3)).ravel()
-            nz = np.flatnonzero(np.any(Bm != 0, axis=0))
-            self._conds.append(_Conditional(self.fidx[rows], self.bf[rows], Bm[:, nz], self.pidx[nz], Dinv=Dinv_m,
-                                            A=self.D[fstale]))
-            self._owner[self.fidx[rows]] = len(self._conds) - 1
-            self._pos[self.fidx[rows]] = -1
-            keep = ~rows
-            self.B, self.bf, self.fidx = self.B[keep], self.bf[keep], self.fidx[keep]
-            self.D, self.xf = self.D[~fstale], self.xf[keep]
-            self._pos[self.fidx] = np.arange(len(self.fidx))
-            self.stats.marginalised_features += int(fstale.sum())
-        pblk = self.pidx[::POSE_DIM]
-        coupled = np.any(self.B != 0, axis=0).reshape(-1, POSE_DIM).any(axis=1)
-        pstale = ((s - last[pblk]) >= self.pose_window) & ~coupled
-        if np.any(pstale):
-            q = np.repeat(pstale, POSE_DIM)
-            k = ~q
-            Pqq, Pqk = self.P[np.ix_(q, q)], self.P[np.ix_(q, k)]
-            bq = self.bp[q]
-            chol = cho_factor(Pqq, lower=True, check_finite=False)  # Pqq is a copy (fancy indexing)
-            self.P = self.P[np.ix_(k, k)] - Pqk.T @ cho_solve(chol, Pqk)
-            self.bp = self.bp[k] - Pqk.T @ cho_solve(chol, bq)
-            nz = np.flatnonzero(np.any(Pqk != 0, axis=0))
-            kidx = self.pidx[k]
-            self._conds.append(_Conditional(self.pidx[q], bq, Pqk[:, nz], kidx[nz], chol=chol, A=Pqq))
-            self._owner[self.pidx[q]] = len(self._conds) - 1
-            self._pos[self.pidx[q]] = -1
-            self.pidx, self.xp, self.B = kidx, self.xp[k], self.B[:, k]
-            self._pos[self.pidx] = np.arange(len(self.pidx))
-            self.stats.marginalised_poses += int(pstale.sum())
-        self.P = 0.5 * (self.P + self.P.T)  # keep the rounding of the Schur updates symmetric
-
-    # -- re-activation of marginalised states ---------------------------------------------
-    def _reactivate(self, blocks: IntArray) -> bool:
-        """Bring marginalised states back into the window by undoing their eliminations.
-
-        Eliminating states ``q`` with separator ``S`` (the active states they were coupled
-        to) subtracted ``C^T A^-1 C`` from the window's ``S`` block and stored the
-        conditional ``(A, C, b)``. While no measurement touches ``q``, adding back
-        ``C^T A^-1 C`` and re-inserting the rows ``[A C]`` restores the marginal
-        information of ``q`` and the window exactly, provided every state of ``S`` is
-        active again: the conditionals that eliminated them later are undone first (as
-        iSAM2 re-eliminates the path from a clique to the root of its Bayes tree).
-        Conditionals eliminated earlier that depend on ``q`` stay valid. A feature
-        batch is split: only the requested features come back. Costs
-        ``O(|S|^2 (|q| + |S|))`` per undone conditional, no access to the full ``I``.
-
-        Parameters
-        ----------
-        blocks : (k,) block starts of marginalised states to re-activate.
-
-        Returns
-        -------
-        False, with nothing changed, when a requested state lies in a rebuild
-        conditional (a sparse factorisation, which cannot be undone); True otherwise.
-        """
-        start, pos, owner = self._map.start, self._pos, self._owner
-        feats: dict[int, set[int]] = {}  # slot -> block starts of the features to bring back
-        poses: set[int] = set()  # slots of pose batches (undone whole)
-        seen: set[int] = set()
-        stack = [int(b) for b in blocks]
-        while stack:
-            b = stack.pop()
-            if b in seen:
-                continue
-            seen.add(b)
-            slot = int(owner[b])
-            c = self._conds[slot]
-            if c is None or c.A is None:  # a rebuild's factorisation (or a bookkeeping bug)
-                return False
-            if c.Dinv is not None:
-                feats.setdefault(slot, set()).add(b)
-                r = np.flatnonzero(c.idx == b)[0]
-                sep = c.cidx[np.any(c.C[r : r + FEATURE_DIM] != 0, axis=0)]
-            else:
-                if slot in poses:
-                    continue
-                poses.add(slot)
-                seen.update(int(v) for v in c.idx[::POSE_DIM])
-                sep = c.cidx
-            sep = np.unique(start[sep])
-            stack.extend(int(v) for v in sep[pos[sep] < 0])
-        n_poses = sum(len(self._conds[slot].idx) // POSE_DIM for slot in poses)
-        for slot in sorted(set(feats) | poses, reverse=True):  # latest elimination first
-            if slot in poses:
-                self._undo_poses(slot)
-            else:
-                self._undo_features(slot, np.fromiter(feats[slot], np.int64))
-        st = self.stats
-        st.reactivations += 1
-        st.reactivated_poses += n_poses
-        st.reactivated_features += sum(len(v) for v in feats.values())
-        return True
-
-    def _undo_poses(self, slot: int) -> None:
-        """Undo the elimination of the pose batch in ``_conds[slot]`` (its separator is active)."""
-        c = self._conds[slot]
-        k = self._pos[c.cidx]
-        if np.any(k < 0):
-            raise EstimatorError("internal: re-activating poses whose separator is not active")
-        q, nq = c.idx, len(c.idx)
-        p0 = len(self.pidx)
-        Y = cho_solve(c.chol, np.column_stack([c.C, c.b]), check_finite=False)
-        P = np.zeros((p0 + nq, p0 + nq))
-        P[:p0, :p0] = self.P
-        P[np.ix_(k, k)] += c.C.T @ Y[:, :-1]
-        P[p0:, p0:] = c.A
-        P[p0:, k] = c.C
-        P[k, p0:] = c.C.T
-        bp = np.concatenate([self.bp, c.b])
-        bp[k] += c.C.T @ Y[:, -1]
-        self.P, self.bp = 0.5 * (P + P.T), bp
-        self.B = np.concatenate([self.B, np.zeros((len(self.fidx), nq))], axis=1)
-        self.pidx = np.concatenate([self.pidx, q])
-        self._pos[q] = np.arange(p0, p0 + nq)
-        self._owner[q] = -1
-        self._conds[slot] = None
-
-    def _undo_features(self, slot: int, blocks: IntArray) -> None:
-        """Undo the elimination of features ``blocks`` (block starts) of the feature batch in
-        ``_conds[slot]``; the other features of the batch stay eliminated."""
-        c = self._conds[slot]
-        fb = c.idx[::FEATURE_DIM]
-        sel = np.isin(fb, blocks)
-        rows = np.repeat(sel, FEATURE_DIM)
-        Cs = c.C[rows]
-        cols = np.any(Cs != 0, axis=0)
-        k = self._pos[c.cidx[cols]]
-        if np.any(k < 0):
-            raise EstimatorError("internal: re-activating features whose poses are not active")
-        Cs = Cs[:, cols]
-        Dinv = c.Dinv[sel]
-        g = int(sel.sum())
-        DC = np.einsum("fij,fjm->fim", Dinv, Cs.reshape(g, 3, -1)).reshape(3 * g, -1)
-        Db = np.einsum("fij,fj->fi", Dinv, c.b[rows].reshape(g, 3)).ravel()
-        self.P[np.ix_(k, k)] += Cs.T @ DC
-        self.P = 0.5 * (self.P + self.P.T)
-        self.bp[k] += Cs.T @ Db
-        Bn = np.zeros((3 * g, len(self.pidx)))
-        Bn[:, k] = Cs
-        f0 = len(self.fidx)
-        idx = c.idx[rows]
-        self.B = np.concatenate([self.B, Bn])
-        self.D = np.concatenate([self.D, c.A[sel]])
-        self.bf = np.concatenate([self.bf, c.b[rows]])
-        self.fidx = np.concatenate([self.fidx, idx])
-        self._pos[idx] = np.arange(f0, f0 + 3 * g)
-        self._owner[idx] = -1
-        keep = ~rows
-        if not np.any(keep):
-            self._conds[slot] = None
-            return
-        Ck = c.C[keep]
-        nz = np.any(Ck != 0, axis=0)
-        self._conds[slot] = _Conditional(c.idx[keep], c.b[keep], Ck[:, nz], c.cidx[nz], Dinv=c.Dinv[~sel],
-                                         A=c.A[~sel])
-
     # -- rebuild from the full information --------------------------------------------------
     def _rebuild(self, info: InformationStore, s: int) -> None:
         """Window = recently measured features, their poses and recent poses; the rest is
@@ -660,7 +280,7 @@ class IncrementalRecovery:
             Y = factor.solve(C.toarray())
             P -= np.asarray(C.T @ Y)
             bp -= C.T @ factor.solve(i[m])
-            self._conds.append(_Conditional(m, i[m].copy(), C, pa, factor=factor))
+            self._conds.append(Conditional(m, i[m].copy(), C, pa, factor=factor))
             self._owner[m] = 0
         self._pos[:] = -1
         self.pidx, self.fidx = pa, fa
@@ -676,3 +296,6 @@ class IncrementalRecovery:
         np.add.at(self.D, (coo.row[same] // 3, coo.row[same] % 3, coo.col[same] % 3), coo.data[same])
         self.B = I[fa][:, pa].toarray()
         self.bf = i[fa].copy()
+
+
+__all__ = ["EntryMap", "IncrementalRecovery", "InformationListener", "RecoveryStats", "TrackedInformationStore"]

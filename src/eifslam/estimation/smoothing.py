@@ -1,20 +1,12 @@
-"""Smoothing (paper III-E) and scale recovery (paper V), pure NumPy / SciPy.
+"""Smoothing (paper III-E), pure NumPy / SciPy.
 
 Smoothing starts from zero information, relinearises every stored measurement (and the
 gauge priors and quaternion-norm pseudo-measurements) at the latest estimate, fuses them
 by eq. 8 and recovers the state; this is repeated until the update is small. It is
 Gauss-Newton started at the filter's answer.
 
-Scale recovery rescales the state by ``s`` so that one known length (between two
-features, or two poses) is met. Every measurement of this problem is invariant to scale,
-so the rescaled estimate satisfies them equally well; the information transforms exactly
-by the diagonal similarity ``S = diag(s on positions, 1 on quaternions)``:
-``I' = S^-1 I S^-1``, ``i' = S^-1 i`` (then ``I' (S x) = i'``), and covariances of positions
-scale by ``s^2``. This costs one pass over the non-zeros and no refactorisation. (The
-paper suggests a Sherman-Morrison rank-one update, i.e. fusing the known length as one
-more scalar measurement; with the scale already fixed by a gauge prior that update would
-be a compromise between the two lengths, so the similarity transform, which replaces the
-gauge length, is what we do.)
+Scale recovery (:func:`rescale`, :func:`recover_scale`) lives in
+:mod:`eifslam.estimation.scale` and is re-exported here.
 """
 
 from __future__ import annotations
@@ -26,6 +18,7 @@ import scipy.sparse as sp
 
 from ..errors import EstimatorError
 from .filter import InformationFilter
+from .scale import recover_scale, rescale  # noqa: F401  (re-exported)
 
 
 @dataclass
@@ -201,51 +194,5 @@ def _passes(filt: InformationFilter, max_passes: int, tol: float, rep: Smoothing
             break
 
 
-def rescale(filt: InformationFilter, s: float) -> None:
-    """Multiply every position in the state by ``s`` and transform ``I``, ``i`` consistently."""
-    if not (np.isfinite(s) and s > 0):
-        raise EstimatorError(f"scale factor must be positive and finite, got {s}")
-    pos = filt.layout.position_mask()
-    d = np.where(pos, 1.0 / s, 1.0)
-    Sinv = sp.diags(d)
-    I = Sinv @ filt.info.matrix() @ Sinv
-    i = d * filt.info.vector
-    filt.info.set(sp.csc_matrix(I), i)
-    filt.x[pos] *= s
-    if filt.priors.scale is not None:
-        a, b, dist = filt.priors.scale
-        filt.priors.scale = (a, b, dist * s)
-    filt.priors.pose = {k: (p * s, q) for k, (p, q) in filt.priors.pose.items()}
-    filt.priors.weak = {k: (v * s if k[0] == "feature" else np.concatenate([v[:3] * s, v[3:]]))
-                        for k, v in filt.priors.weak.items()}
-    filt.invalidate()
-
-
-def recover_scale(filt: InformationFilter, a: tuple[str, int], b: tuple[str, int], length: float) -> float:
-    """Rescale so that the distance between states ``a`` and ``b`` is ``length``.
-
-    Parameters
-    ----------
-    a, b : ``("feature", track_id)`` or ``("pose", frame_id)``.
-    length : the true distance, in the units wanted for the map.
-
-    Returns
-    -------
-    The factor applied.
-    """
-    def position(key: tuple[str, int]) -> np.ndarray:
-        kind, ident = key
-        if kind == "feature":
-            return filt.x[filt.layout.feature_slice(ident)]
-        if kind == "pose":
-            return filt.x[filt.layout.pose_slice(ident)][:3]
-        raise EstimatorError(f"unknown state kind {kind!r}; use 'feature' or 'pose'")
-
-    cur = float(np.linalg.norm(position(b) - position(a)))
-    if not cur > 0:
-        raise EstimatorError("the two states coincide; their distance cannot set the scale")
-    if not (np.isfinite(length) and length > 0):
-        raise EstimatorError(f"known length must be positive, got {length}")
-    s = length / cur
-    rescale(filt, s)
-    return s
+__all__ = ["SmoothingReport", "measurement_cost", "recover_scale", "reject_outliers", "relinearise", "rescale",
+           "smooth"]
