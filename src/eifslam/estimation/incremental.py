@@ -176,13 +176,8 @@ class IncrementalRecovery(ActiveWindow):
         and rebuilds from the full ``I`` at its next :meth:`step`. Pickle the owner's
         complete estimate (:meth:`full_solution`) if it is needed after loading."""
         state = self.__dict__.copy()
-        state.update(_conds=[], _pending=[], _valid=False, _S_cho=None, _S_pidx=np.zeros(0, np.int64),
-                     _Dinv=np.zeros((0, 3, 3)), _DB=np.zeros((0, 0)))
-        state["_owner"] = np.full(len(self._owner), -1, np.int64)
-        state["_pos"] = np.full(len(self._pos), -1, np.int64)
-        empty = IncrementalRecovery.__new__(IncrementalRecovery)
-        empty._reset_window()
-        state.update(empty.__dict__)
+        state.update(self.empty_window(), _conds=[], _pending=[], _valid=False,
+                     _owner=np.full(len(self._owner), -1, np.int64), _pos=np.full(len(self._pos), -1, np.int64))
         return state
 
     def __setstate__(self, state: dict) -> None:

@@ -151,13 +151,15 @@ class ActiveWindow:
     pose_window: int
     stats: RecoveryStats
 
+    @staticmethod
+    def empty_window() -> dict:
+        """The fields of an empty window (no active state, nothing solved)."""
+        return dict(pidx=np.zeros(0, np.int64), fidx=np.zeros(0, np.int64), P=np.zeros((0, 0)), bp=np.zeros(0),
+                    D=np.zeros((0, 3, 3)), bf=np.zeros(0), B=np.zeros((0, 0)), xp=np.zeros(0), xf=np.zeros(0),
+                    _S_cho=None, _S_pidx=np.zeros(0, np.int64), _Dinv=np.zeros((0, 3, 3)), _DB=np.zeros((0, 0)))
+
     def _reset_window(self) -> None:
-        self.pidx = np.zeros(0, np.int64)
-        self.fidx = np.zeros(0, np.int64)
-        self.P, self.bp = np.zeros((0, 0)), np.zeros(0)
-        self.D, self.bf = np.zeros((0, 3, 3)), np.zeros(0)
-        self.B = np.zeros((0, 0))
-        self.xp, self.xf = np.zeros(0), np.zeros(0)
+        self.__dict__.update(self.empty_window())
 
     @property
     def active_indices(self) -> IntArray:
