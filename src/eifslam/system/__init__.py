@@ -12,3 +12,8 @@
 
 This layer imports no evaluation, io, cli or plotting code.
 """
+
+from .config import Mode, SlamConfig, SystemConfig
+from .slam import Slam, TrackingState, TrackResult
+
+__all__ = ["Mode", "Slam", "SlamConfig", "SystemConfig", "TrackResult", "TrackingState"]
