@@ -108,7 +108,7 @@ def build_row(dataset: str, mode: str, detector: str, report: Mapping[str, Any] 
     dataset, mode, detector : str
         What was run.
     report : mapping, optional
-        The dict :func:`eifslam.system.runner.run_sequence` returns (possibly updated
+        The dict :func:`eifslam.evaluation.outputs.run_to_folder` returns (possibly updated
         with the box-ratio figures). ``None`` when the run failed before writing one.
     error : str, optional
         Why the run failed (``"ExcType: message"``).
@@ -389,7 +389,7 @@ def run_one(source: Path, dataset: str, mode: str, detector: str, out_dir: Path,
     quiet : bool
         Hide the per-frame progress bar.
     runner : callable, optional
-        Replacement of :func:`eifslam.system.runner.run_sequence` (tests).
+        Replacement of :func:`eifslam.evaluation.outputs.run_to_folder` (tests).
     **row_extra
         Copied into the row.
 
@@ -399,22 +399,18 @@ def run_one(source: Path, dataset: str, mode: str, detector: str, out_dir: Path,
         From :func:`build_row`.
     """
     try:
-        from eifslam.system.runner import run_sequence
+        from eifslam.evaluation.outputs import run_to_folder
         from eifslam.system.config import SlamConfig
         from eifslam.io import open_source
 
         config = SlamConfig().replace(frontend={"detector": detector, **dict(frontend or {})},
                                       system={"mode": mode})
         seq = open_source(source)
-        rep = (runner or run_sequence)(seq, config, out_dir, max_frames=max_frames, html=False, quiet=quiet)
+        rep = (runner or run_to_folder)(seq, config, out_dir, max_frames=max_frames, html=False, quiet=quiet)
         if scene is not None and rep.get("frames_tracked", 0) >= 3:
-            from eifslam.cli.demo import box_ratio_figures
+            from eifslam.evaluation.box_ratio import add_box_ratio
 
-            try:
-                rep.update(box_ratio_figures(out_dir, scene))
-            except Exception as exc:  # scoring must not lose the run
-                rep["box_ratio_error"] = f"{type(exc).__name__}: {exc}"
-            (out_dir / "report.json").write_text(json.dumps(rep, indent=2, default=float))
+            add_box_ratio(rep, out_dir, scene)
         backend = backend_ms_median(out_dir / "frames.json")
         if backend is not None:
             row_extra = {"ms_backend": backend, **row_extra}

@@ -202,7 +202,7 @@ def main(argv: Sequence[str] | None = None, runner: Callable[..., dict[str, Any]
     argv : sequence of str, optional
         Arguments (default ``sys.argv[1:]``).
     runner : callable, optional
-        Replacement of ``run_sequence`` (tests).
+        Replacement of ``run_to_folder`` (tests).
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parse_args(argv)

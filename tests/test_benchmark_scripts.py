@@ -34,7 +34,7 @@ split_study = _load("split_study")
 
 
 def fake_report(**over) -> dict:
-    """A report.json dict as run_sequence returns it."""
+    """A report.json dict as run_to_folder returns it."""
     rep = dict(frames=10, frames_tracked=8, frames_lost=2, map_features=123, mode="filter", detector="sift",
                stage_ms_median=dict(detect=20.0, match=5.0, relative_pose=3.0, covariance=1.0, init=2.0,
                                     fuse=0.5, recover=1.5, total=33.0),

@@ -99,7 +99,6 @@ def test_core_modules_do_not_import_cv2_or_matplotlib():
 
 @pytest.mark.skipif(not (DATASETS / "kitti-seq1").is_dir(), reason="../shared/datasets/kitti-seq1 is absent")
 def test_kitti_first_frames_ba_against_ground_truth():
-    from eifslam.baselines.bundle_adjustment import bundle_adjust_slam
     from eifslam.system.config import SlamConfig
     from eifslam.evaluation.metrics import evaluate
     from eifslam.io import Trajectory, open_source
@@ -109,7 +108,9 @@ def test_kitti_first_frames_ba_against_ground_truth():
     slam = Slam(seq.camera, SlamConfig().replace(system={"mode": "ba"}))
     for k in range(10):
         slam.track(seq.load(k), seq.frames[k].timestamp)
-    res = bundle_adjust_slam(slam)
+    fin = slam.finish()  # mode ba: bundle adjustment, as `eifslam run --mode ba` does
+    res = fin.ba
+    assert res is slam.bundle_adjustment and fin.failures == []
     assert res.n_points > 1000 and res.final_rms_px < res.initial_rms_px < 2.0
     t, P, Q = slam.trajectory()
     ev = evaluate(Trajectory(t, P, Q), seq.ground_truth())

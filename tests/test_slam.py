@@ -114,7 +114,7 @@ def test_frames_that_wait_for_a_baseline_are_localised_once_the_map_exists():
     assert 0.5 in t.tolist()
     step = np.linalg.norm(P[t == scene.timestamps[3] + 1.0] - P[0])
     assert 0 < np.linalg.norm(P[t == 0.5] - P[0]) < 0.05 * step  # it sits where frame 0 is
-    assert slam.finish() == 0  # nothing left to retry
+    assert slam.retry_lost() == 0  # nothing left to retry
 
 
 def test_session_saves_after_the_recovery_window_was_rebuilt(scene_run, tmp_path):
@@ -201,3 +201,41 @@ def test_runs_repeat_with_the_same_seed_and_bad_settings_are_named():
         SlamConfig.from_dict({"system": {"reobserve_radius_px": -1}})
     with pytest.raises(ConfigError, match="init_parallax_deg"):
         SlamConfig.from_dict({"system": {"init_parallax_deg": 95}})
+
+
+def test_one_set_of_defaults_and_string_enums():
+    import argparse
+
+    from eifslam.cli.run import make_config
+    from eifslam.frontend.config import Detector, FrontEndConfig
+    from eifslam.system.config import Mode, SystemConfig
+
+    args = argparse.Namespace(map_fraction=None, features=None, max_features=None, mode=None)
+    assert make_config(args) == SlamConfig()  # `eifslam run` without options
+    assert SlamConfig().frontend == FrontEndConfig() and SlamConfig().filter.gate_chi2 == 9.21
+    cfg = SlamConfig.from_dict({"system": {"mode": "ba"}, "frontend": {"detector": "orb"}})
+    assert cfg.system.mode is Mode.BA and cfg.system.mode == "ba" and f"{cfg.system.mode}" == "ba"
+    assert cfg.frontend.detector is Detector.ORB and not cfg.float_descriptors
+    with pytest.raises(ConfigError, match="contradiction_ratio"):
+        SystemConfig(contradiction_ratio=0.5)
+    with pytest.raises(ConfigError, match="min_map_features"):
+        SystemConfig(min_map_features=0)
+
+
+def test_finish_follows_the_mode_and_old_sessions_are_refused(tmp_path):
+    import pickle
+
+    from eifslam.errors import EifslamError
+    from eifslam.sim.scene import make_scene, render_frame
+
+    scene = make_scene(n_frames=54)
+    slam = Slam(scene.camera, SlamConfig().replace(system={"mode": "smooth"}))
+    for k in range(4):
+        slam.track(render_frame(scene, k), float(scene.timestamps[k]))
+    fin = slam.finish()
+    assert fin.failures == [] and fin.smoothing is not None and slam.smoothing is fin.smoothing
+    assert fin.ba is None
+    old = tmp_path / "old.pkl"
+    old.write_bytes(pickle.dumps({"version": 1, "slam": slam}))
+    with pytest.raises(EifslamError, match="version 1"):
+        Slam.load(old)

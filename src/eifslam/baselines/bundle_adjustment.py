@@ -435,7 +435,7 @@ def bundle_adjust(camera: PinholeCamera, frame_ids, positions: Array, quats: Arr
                     time.perf_counter() - t0, rms0, rms1, success, msg)
 
 
-# -- glue to a Slam run (duck-typed: no front-end import) -------------------------------------
+# -- observations from a front end (duck-typed: no front-end import) ----------------------------
 def observations_from_frontend(frontend, frame_ids, sigma_px: float = 1.0) -> Observations:
     """Every keypoint with a track id in the given frames of a front end.
 
@@ -454,41 +454,5 @@ def observations_from_frontend(frontend, frame_ids, sigma_px: float = 1.0) -> Ob
     return Observations(f, np.concatenate(tr), np.concatenate(uv), np.full(len(f), float(sigma_px)))
 
 
-def bundle_adjust_slam(slam, config: BAConfig | None = None) -> BAResult:
-    """Bundle-adjust a :class:`~eifslam.slam.Slam` after its run and write the result back.
-
-    Poses come from the filter's estimate, tracks (``Ωp`` and ``Ωm``) from its front end.
-    The adjusted poses replace the filter's; map features that BA triangulated take the
-    BA positions (others keep the filter's). The gauge pair is that of the filter's scale
-    prior when there is one (else the first two poses).
-    """
-    filt = slam.filter
-    filt.complete_estimate()  # every state at the filter's solution before BA starts from it
-    ids, P, Q = filt.poses()
-    order = np.argsort(ids)
-    fids = np.asarray(ids, np.int64)[order]
-    P, Q = P[order], Q[order]
-    gauge = (0, 1)
-    if filt.priors.scale is not None:
-        fa, fb, _ = filt.priors.scale
-        where = {int(f): k for k, f in enumerate(fids)}
-        if fa in where and fb in where:
-            gauge = (where[fa], where[fb])
-    obs = observations_from_frontend(slam.frontend, fids, slam.config.zm_sigma_px)
-    res = bundle_adjust(slam.camera, fids, P, Q, obs, config, gauge)
-    lay = filt.layout
-    for f, p, q in zip(res.frame_ids, res.positions, res.quats):
-        s = lay.pose_slice(int(f))
-        filt.x[s] = np.concatenate([p, q])
-    in_map = lay.has_features(res.track_ids)
-    if in_map.any():
-        filt.x[lay.feature_columns(res.track_ids[in_map])] = res.points[in_map]
-    if filt.incremental is not None:
-        # the window's back-substitution (complete_estimate) would put the filter's
-        # answer back over BA's
-        filt.incremental.on_invalidate()
-    return res
-
-
-__all__ = ["BAConfig", "BAResult", "Observations", "bundle_adjust", "bundle_adjust_slam",
+__all__ = ["BAConfig", "BAResult", "Observations", "bundle_adjust",
            "observations_from_frontend", "triangulate_tracks", "exp_jacobian", "apply_increment"]

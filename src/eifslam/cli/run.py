@@ -3,23 +3,30 @@
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 
-from ..system.config import SlamConfig
 from ..errors import ConfigError, EifslamError
+from ..frontend.config import DETECTORS
+from ..system.config import Mode, SlamConfig
+
+_DEFAULT = SlamConfig()
 
 
-def add_common_options(p: argparse.ArgumentParser) -> None:
-    """Options shared by ``run`` and ``demo``."""
+def add_common_options(p: argparse.ArgumentParser, max_features: int | None = None) -> None:
+    """Options shared by ``run`` and ``demo``; every default is the configuration's
+    (``SlamConfig()``) unless the command passes its own ``max_features``."""
+    fe, sy = _DEFAULT.frontend, _DEFAULT.system
     p.add_argument("--out", required=True, type=Path, help="output folder")
-    p.add_argument("--mode", choices=["filter", "smooth", "ba"], default="smooth",
-                   help="filter only, filter + relinearise + smooth (default), or filter + full bundle adjustment")
-    p.add_argument("--features", choices=["sift", "orb", "akaze", "surf"], default="sift", help="feature detector")
+    p.add_argument("--mode", choices=[m.value for m in Mode], default=None,
+                   help=f"filter only, filter + relinearise + smooth, or filter + full bundle adjustment "
+                        f"(default {sy.mode.value})")
+    p.add_argument("--features", choices=list(DETECTORS), default=None,
+                   help=f"feature detector (default {fe.detector.value})")
     p.add_argument("--map-fraction", type=float, default=None,
-                   help="fraction of tracks kept in the map (Ωm); default 0.5, measured (the paper kept 0.3)")
+                   help=f"fraction of tracks kept in the map (Ωm); default {fe.map_fraction:g}, measured "
+                        "(the paper kept 0.3)")
     p.add_argument("--max-features", type=int, default=None,
-                   help="features detected per image (default 2000; demo: 4000)")
+                   help=f"features detected per image (default {max_features or fe.max_features})")
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames")
     p.add_argument("--no-html", action="store_true", help="skip report.html")
 
@@ -36,30 +43,38 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
-def make_config(args: argparse.Namespace, map_fraction: float = 0.5, max_features: int | None = None) -> SlamConfig:
-    """The configuration the command-line options ask for (defaults given by the command)."""
-    frac = map_fraction if args.map_fraction is None else args.map_fraction
-    if not 0.0 < frac <= 1.0:
-        raise ConfigError(f"--map-fraction must lie in (0, 1], got {frac}")
-    fe: dict = {"detector": args.features, "map_fraction": frac}
-    nfeat = max_features if args.max_features is None else args.max_features
-    if nfeat is not None:
-        fe["max_features"] = nfeat
-    return SlamConfig().replace(frontend=fe, system={"mode": args.mode})
+def make_config(args: argparse.Namespace, base: SlamConfig | None = None) -> SlamConfig:
+    """The configuration the command-line options ask for: ``base`` (default
+    ``SlamConfig()``) with only the options the user passed changed."""
+    fe: dict = {}
+    if args.map_fraction is not None:
+        if not 0.0 < args.map_fraction <= 1.0:
+            raise ConfigError(f"--map-fraction must lie in (0, 1], got {args.map_fraction}")
+        fe["map_fraction"] = args.map_fraction
+    if args.features is not None:
+        fe["detector"] = args.features
+    if args.max_features is not None:
+        fe["max_features"] = args.max_features
+    sy = {} if args.mode is None else {"mode": args.mode}
+    return (base or SlamConfig()).replace(frontend=fe, system=sy)
+
+
+def parse_scale(values: list[str] | None) -> tuple | None:
+    """``--scale-distance KIND_A ID_A KIND_B ID_B LENGTH`` as ``((kind, id), (kind, id), length)``."""
+    if not values:
+        return None
+    ka, ia, kb, ib, length = values
+    try:
+        return (ka, int(ia)), (kb, int(ib)), float(length)
+    except ValueError as exc:
+        raise EifslamError(f"--scale-distance: {exc}") from exc
 
 
 def main(args: argparse.Namespace) -> int:
+    from ..evaluation.outputs import run_to_folder
     from ..io import open_source
-    from ..system.runner import run_sequence
 
     seq = open_source(args.source, camera=args.camera)
-    scale = None
-    if args.scale_distance:
-        ka, ia, kb, ib, length = args.scale_distance
-        try:
-            scale = ((ka, int(ia)), (kb, int(ib)), float(length))
-        except ValueError as exc:
-            raise EifslamError(f"--scale-distance: {exc}") from exc
-    rep = run_sequence(seq, make_config(args), args.out, max_frames=args.max_frames, scale=scale,
-                       html=not args.no_html)
+    rep = run_to_folder(seq, make_config(args), args.out, max_frames=args.max_frames,
+                        scale=parse_scale(args.scale_distance), html=not args.no_html)
     return 0 if rep.get("frames_tracked", 0) > 0 else 1

@@ -329,6 +329,19 @@ class InformationFilter:
             self.incremental.full_solution(self._x[: self.dim])
         return self.x
 
+    # -- set from outside (issue 11: bundle adjustment in the system layer) ----------------
+    def set_estimate(self, x: Array) -> None:
+        """Replace the estimate (the linearisation point) by ``x`` ``(dim,)``, e.g. a
+        bundle adjustment's. The information is unchanged; in incremental mode the
+        recovery window is rebuilt at the next step (its back-substitution would put the
+        previous answer back)."""
+        x = np.asarray(x, float)
+        if x.shape != (self.dim,):
+            raise EstimatorError(f"set_estimate: expected shape ({self.dim},), got {x.shape}")
+        self._x[: self.dim] = x
+        if self.incremental is not None:
+            self.incremental.on_invalidate()
+
     # -- uncertainty ------------------------------------------------------------------
     def covariance(self, idx) -> Array:
         """Marginal covariance of arbitrary state entries ``idx`` (k,)."""

@@ -9,11 +9,15 @@ after a run and writes, into one folder,
 * ``information.npz`` the final information matrix (``scipy.sparse.save_npz``);
 * ``report.json``     the summary figures, with ATE when ground truth is given
   (ground truth is read here, for scoring only, after the estimate is final).
+
+``run_to_folder`` is the whole of ``eifslam run``: drive the system over a sequence
+(:func:`eifslam.system.runner.run_sequence`), then write the outputs.
 """
 
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +62,8 @@ def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
     )
     if slam.smoothing is not None:
         rep["smoothing"] = dict(passes=slam.smoothing.passes, step_norms=slam.smoothing.step_norms)
+    if slam.bundle_adjustment is not None:
+        rep["ba"] = slam.bundle_adjustment.summary()
     if ground_truth is not None:
         t, P, Q = slam.trajectory()
         try:
@@ -92,4 +98,52 @@ def write_outputs(slam: Slam, out_dir: str | Path, total_s: float, ground_truth:
             write_report(out, ground_truth=ground_truth)
         except ImportError:
             pass
+    return rep
+
+
+def summary_line(rep: dict[str, Any], out_dir: str | Path) -> str:
+    """One line for the terminal: frames tracked, map size, speed, ATE, where the outputs are."""
+    line = (f"eifslam: {rep['frames_tracked']}/{rep['frames']} frames tracked, {rep['map_features']} map features, "
+            f"{rep['fps']} fps")
+    if "ate_rmse" in rep:
+        line += f", ATE {rep['ate_rmse']:.4g}"
+    return line + f"; outputs in {out_dir}"
+
+
+def run_to_folder(seq, config, out_dir: str | Path, max_frames: int | None = None, scale: tuple | None = None,
+                  html: bool = True, extra: dict[str, Any] | None = None, quiet: bool = False,
+                  verbose: bool = True) -> dict[str, Any]:
+    """Run SLAM over a sequence and write every output into ``out_dir``.
+
+    Parameters
+    ----------
+    seq : sequence
+        From :func:`eifslam.io.open_source`; its ground truth, when it has one, scores the run.
+    config : SlamConfig
+    out_dir : path
+    max_frames, scale, quiet
+        As for :func:`~eifslam.system.runner.run_sequence`.
+    html : bool
+        Also write ``report.html``.
+    extra : dict, optional
+        Copied into ``report.json``.
+    verbose : bool
+        Print :func:`summary_line` to stderr.
+
+    Returns
+    -------
+    dict
+        The figures written to ``report.json``.
+    """
+    from ..system.runner import run_sequence
+
+    run = run_sequence(seq, config, max_frames=max_frames, scale=scale, quiet=quiet)
+    gt = seq.ground_truth() if getattr(seq, "has_ground_truth", False) else None
+    extra = dict(extra or {})
+    extra["source"] = str(getattr(seq, "root", ""))
+    if run.stopped:
+        extra["stopped"] = run.stopped
+    rep = write_outputs(run.slam, out_dir, run.seconds, gt, extra, html=html)
+    if verbose:
+        print(summary_line(rep, out_dir), file=sys.stderr)
     return rep

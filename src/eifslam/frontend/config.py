@@ -7,14 +7,43 @@ checked when the detector is created (:mod:`eifslam.frontend.features`).
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from enum import Enum
 from typing import Any, Mapping
 
 from ..errors import ConfigError
 
-__all__ = ["FrontEndConfig", "DETECTORS", "COVARIANCE_METHODS"]
+__all__ = ["FrontEndConfig", "Detector", "CovarianceMethod", "DETECTORS", "COVARIANCE_METHODS"]
 
-DETECTORS = ("sift", "orb", "akaze", "surf")
-COVARIANCE_METHODS = ("fast", "ut")
+
+class Detector(str, Enum):
+    """Feature detector/descriptor (a ``str`` enum: ``"sift"`` and ``Detector.SIFT`` are equal)."""
+
+    SIFT = "sift"
+    ORB = "orb"
+    AKAZE = "akaze"
+    SURF = "surf"
+
+    def __str__(self) -> str:
+        return str(self.value)
+
+    @property
+    def float_descriptors(self) -> bool:
+        """Whether its descriptors are floats (SIFT, SURF) rather than binary (ORB, AKAZE)."""
+        return self in (Detector.SIFT, Detector.SURF)
+
+
+class CovarianceMethod(str, Enum):
+    """How the relative pose's covariance is computed (a ``str`` enum)."""
+
+    FAST = "fast"  #: first order, ``sigma_px**2 (J^T J)^-1`` of the Sampson residuals
+    UT = "ut"  #: unscented transform of the point noise through the refinement
+
+    def __str__(self) -> str:
+        return str(self.value)
+
+
+DETECTORS = tuple(d.value for d in Detector)
+COVARIANCE_METHODS = tuple(c.value for c in CovarianceMethod)
 COLOR_ORDERS = ("bgr", "rgb")
 RANSAC_METHODS = ("usac", "magsac", "ransac")
 
@@ -29,25 +58,28 @@ class FrontEndConfig:
 
     Attributes
     ----------
-    detector : {"sift", "orb", "akaze", "surf"}
-        Feature detector/descriptor. SURF and AKAZE need an OpenCV build that ships them.
+    detector : Detector or {"sift", "orb", "akaze", "surf"}
+        Feature detector/descriptor (stored as a :class:`Detector`). SURF and AKAZE need an OpenCV build that ships them.
     max_features : int
-        Cap on keypoints per image (the strongest are kept). 1000 meets the time budget
-        on kitti-seq1 (1226x370) with the same ZR/ZT accuracy as 1500.
+        Cap on keypoints per image (the strongest are kept). 2000: the system's choice,
+        measured on the shared data sets (docs/system.md); 1000 already gives the same
+        ZR/ZT accuracy on kitti-seq1 (1226x370) in less time, but fewer map features.
     sift_octave_layers : int
-        SIFT scales per octave (OpenCV's default is 3; 2 is ~10-25% faster with the same
-        relative-pose accuracy on kitti-seq1).
+        SIFT scales per octave (3, OpenCV's default; 2 is ~10-25% faster with the same
+        relative-pose accuracy on kitti-seq1 but tracks fewer features).
     color_order : {"bgr", "rgb"}
         Channel order of 3-channel input images (OpenCV's ``imread`` gives BGR).
     map_fraction : float in [0, 1]
-        Fraction of new tracks assigned to the map set ``Ωm``; the rest go to ``Ωp``.
+        Fraction of new tracks assigned to the map set ``Ωm``; the rest go to ``Ωp``
+        (0.5, measured: docs/split_study.md; the paper kept 0.3).
     ratio : float in (0, 1]
         Lowe's ratio test threshold (best / second-best descriptor distance).
     mutual : bool
         Keep only mutual nearest neighbours.
     match_window : int >= 1
-        A new frame is matched against this many previous frames (1 = previous only);
-        older frames only see keypoints still unmatched, to recover tracks lost for a frame.
+        A new frame is matched against this many previous frames (1 = previous only; 3
+        by default); older frames only see keypoints still unmatched, to recover tracks
+        lost for a frame.
     ransac_threshold_px : float > 0
         Epipolar (Sampson) inlier threshold of the essential-matrix RANSAC, pixels.
     ransac_confidence : float in (0, 1)
@@ -76,7 +108,7 @@ class FrontEndConfig:
         Gauss-Newton iterations of that refinement.
     sigma_px : float > 0
         Standard deviation of image-point noise per coordinate, pixels.
-    covariance : {"fast", "ut"}
+    covariance : CovarianceMethod or {"fast", "ut"}
         ``"fast"``: first-order ``sigma_px**2 (J^T J)^-1`` of the Sampson residuals;
         ``"ut"``: unscented transform of the point noise through the refinement.
     ut_max_points : int >= 5
@@ -90,16 +122,16 @@ class FrontEndConfig:
     """
 
     # features
-    detector: str = "sift"
-    max_features: int = 1000
-    sift_octave_layers: int = 2
+    detector: Detector = Detector.SIFT
+    max_features: int = 2000
+    sift_octave_layers: int = 3
     color_order: str = "bgr"
     # split of tracks between relative poses (Ωp) and the map (Ωm)
-    map_fraction: float = 0.3
+    map_fraction: float = 0.5
     # association
     ratio: float = 0.8
     mutual: bool = True
-    match_window: int = 1
+    match_window: int = 3
     ransac_threshold_px: float = 1.0
     ransac_confidence: float = 0.999
     ransac_method: str = "usac"
@@ -113,7 +145,7 @@ class FrontEndConfig:
     refine_iterations: int = 3
     # uncertainty
     sigma_px: float = 1.0
-    covariance: str = "fast"
+    covariance: CovarianceMethod = CovarianceMethod.FAST
     ut_max_points: int = 300
     # repeatability
     seed: int | None = 0
@@ -122,10 +154,12 @@ class FrontEndConfig:
         def bad(key: str, msg: str) -> ConfigError:
             return ConfigError(f"front-end config '{key}': {msg}, got {getattr(self, key)!r}")
 
-        if self.detector not in DETECTORS:
-            raise bad("detector", f"must be one of {DETECTORS}")
-        if self.covariance not in COVARIANCE_METHODS:
-            raise bad("covariance", f"must be one of {COVARIANCE_METHODS}")
+        for key, enum, names in (("detector", Detector, DETECTORS), ("covariance", CovarianceMethod,
+                                                                         COVARIANCE_METHODS)):
+            try:
+                object.__setattr__(self, key, enum(getattr(self, key)))
+            except ValueError:
+                raise bad(key, f"must be one of {names}") from None
         if self.ransac_method not in RANSAC_METHODS:
             raise bad("ransac_method", f"must be one of {RANSAC_METHODS}")
         if self.color_order not in COLOR_ORDERS:

@@ -72,6 +72,20 @@ class FrontEnd:
         self._last_frame = np.zeros(0, np.int64)  # per raw track id: last frame seen in
         self._last_kp = np.zeros(0, np.int64)  # ... and the keypoint index there
 
+    # ------------------------------------------------------------------ pickling
+    def __getstate__(self) -> dict:
+        """Pickle without the OpenCV detector and matcher (they do not pickle); they are
+        recreated from the config when loaded (:meth:`__setstate__`)."""
+        state = self.__dict__.copy()
+        state["_detector"] = None
+        state["_matcher"] = None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._detector = make_detector(self.config)
+        self._matcher = DescriptorMatcher(self.config.ratio, self.config.mutual)
+
     # ------------------------------------------------------------------ queries
     @property
     def frame_ids(self) -> list[int]:

@@ -9,11 +9,27 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from enum import Enum
 from typing import Any, Mapping
 
 from ..errors import ConfigError
 from ..estimation.filter import FilterConfig
 from ..frontend import FrontEndConfig
+
+
+class Mode(str, Enum):
+    """What a run does after the last image (:meth:`Slam.finish <eifslam.system.slam.Slam.finish>`).
+
+    A ``str`` enum: ``Mode("smooth")``, ``Mode.SMOOTH == "smooth"`` and configs given as
+    plain strings all work.
+    """
+
+    FILTER = "filter"  #: the filter's estimate
+    SMOOTH = "smooth"  #: relinearise every stored measurement and smooth (paper III-E)
+    BA = "ba"  #: full bundle adjustment of every track
+
+    def __str__(self) -> str:
+        return str(self.value)
 
 
 @dataclass(frozen=True)
@@ -22,9 +38,10 @@ class SystemConfig:
 
     Attributes
     ----------
-    mode : {"filter", "smooth", "ba"}
+    mode : Mode or {"filter", "smooth", "ba"}
         Filter only, or filter + relinearise + smooth at the end of a run, or filter +
-        full bundle adjustment of every track (:mod:`eifslam.bundle_adjustment`).
+        full bundle adjustment of every track (:mod:`eifslam.baselines.bundle_adjustment`);
+        :meth:`Slam.finish` does it. Stored as a :class:`Mode`.
     smooth_passes : int
         At most this many relinearisation passes when smoothing (paper: one is enough).
     reference_candidates : int
@@ -72,9 +89,31 @@ class SystemConfig:
         Incremental recovery: frames without a measurement before a state leaves the
         window (larger than the front end's matching window, so that a track that
         reappears rarely touches a marginalised feature).
+    relocalise_top : int
+        When tracking is lost, the relative pose is tried with at most this many of the
+        older poses that share the most descriptor matches with the frame.
+    min_map_features : int
+        Known map features a frame must see before its pose is localised on (or refined
+        against) the map alone.
+    agree_rotation_deg : float
+        A map-refined pose agrees with the relative-pose guess when they differ by at
+        most this rotation, degrees, ...
+    agree_direction_deg : float
+        ... their step directions from the reference pose by at most this angle, degrees,
+        and at least half of the known features fit the refined pose.
+    map_inlier_fraction : float in (0, 1]
+        A map-refined pose with at least this fraction of inliers is a trusted
+        linearisation point (and the ``ZR``/``ZT`` is gated against it).
+    contradiction_ratio : float >= 1
+        The map contradicts a relative pose when the refined pose's inlier fraction
+        exceeds this multiple of the relative-pose guess's; the ``ZR``/``ZT`` is then
+        not fused.
+    inlier_radius_px : float
+        A known feature fits the relative-pose guess when it projects within this many
+        pixels of its measurement (for ``contradiction_ratio``).
     """
 
-    mode: str = "smooth"
+    mode: Mode = Mode.SMOOTH
     smooth_passes: int = 5
     reference_candidates: int = 4
     relocalise_candidates: int = 30
@@ -87,10 +126,31 @@ class SystemConfig:
     relative_gate_chi2: float | None = 50.0
     robust_smoothing: bool = True
     reobserve_radius_px: float | None = None
+    relocalise_top: int = 5
+    min_map_features: int = 12
+    agree_rotation_deg: float = 2.0
+    agree_direction_deg: float = 10.0
+    map_inlier_fraction: float = 0.7
+    contradiction_ratio: float = 1.5
+    inlier_radius_px: float = 4.0
 
     def __post_init__(self) -> None:
-        if self.mode not in ("filter", "smooth", "ba"):
-            raise ConfigError(f"system.mode must be 'filter', 'smooth' or 'ba', got {self.mode!r}")
+        try:
+            object.__setattr__(self, "mode", Mode(self.mode))
+        except ValueError:
+            raise ConfigError(f"system.mode must be 'filter', 'smooth' or 'ba', got {self.mode!r}") from None
+        for key in ("relocalise_top", "min_map_features"):
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ConfigError(f"system.{key} must be an integer >= 1, got {v!r}")
+        for key, lo, hi in (("agree_rotation_deg", 0.0, 180.0), ("agree_direction_deg", 0.0, 180.0),
+                            ("map_inlier_fraction", 0.0, 1.0), ("inlier_radius_px", 0.0, 1e3)):
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo < v <= hi:
+                raise ConfigError(f"system.{key} must lie in ({lo:g}, {hi:g}], got {v!r}")
+        v = self.contradiction_ratio
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 1.0 <= v < 1e3:
+            raise ConfigError(f"system.contradiction_ratio must be >= 1, got {v!r}")
         for key in ("smooth_passes", "reference_candidates"):
             if int(getattr(self, key)) < 1:
                 raise ConfigError(f"system.{key} must be at least 1")
@@ -120,6 +180,10 @@ class SystemConfig:
         return float(self.min_feature_parallax_deg)
 
 
+#: The ``Zm`` gate the system runs with (``SlamConfig().filter.gate_chi2``).
+SYSTEM_GATE_CHI2 = 9.21
+
+
 def _build(cls: type, values: Mapping[str, Any], prefix: str):
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(values) - names)
@@ -133,22 +197,24 @@ def _build(cls: type, values: Mapping[str, Any], prefix: str):
 
 @dataclass(frozen=True)
 class SlamConfig:
-    """Front end, filter and system settings."""
+    """Front end, filter and system settings: ``SlamConfig()`` is what ``eifslam run``
+    uses without options.
 
-    # the system's front-end defaults (measured on the shared data sets, docs/system.md):
-    # more features, SIFT's 3 layers per octave, tracks matched over the last 3 frames, and
-    # half of the new tracks kept in the map (docs/split_study.md)
-    frontend: FrontEndConfig = field(
-        default_factory=lambda: FrontEndConfig(max_features=2000, sift_octave_layers=3, match_window=3,
-                                               map_fraction=0.5))
-    # Zm gate: 99% of chi-square with 2 DOF at sigma_px (docs/system.md)
-    filter: FilterConfig = field(default_factory=lambda: FilterConfig(gate_chi2=9.21))
+    The defaults are those of the three dataclasses, with one system choice:
+    ``filter.gate_chi2`` is :data:`SYSTEM_GATE_CHI2` (9.21) here, where a bare
+    :class:`~eifslam.estimation.filter.FilterConfig` does not gate.
+    """
+
+    frontend: FrontEndConfig = field(default_factory=FrontEndConfig)
+    # the system gates Zm (the filter alone does not): 99% of chi-square with 2 DOF at
+    # sigma_px (docs/system.md); FilterConfig's own default belongs to the estimation layer
+    filter: FilterConfig = field(default_factory=lambda: FilterConfig(gate_chi2=SYSTEM_GATE_CHI2))
     system: SystemConfig = field(default_factory=SystemConfig)
 
     @property
     def float_descriptors(self) -> bool:
         """Whether the detector gives float descriptors (SIFT, SURF) rather than binary ones."""
-        return self.frontend.detector in ("sift", "surf")
+        return self.frontend.detector.float_descriptors
 
     @property
     def zm_sigma_px(self) -> float:

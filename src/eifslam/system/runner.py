@@ -1,27 +1,67 @@
-"""Drive a :class:`~eifslam.slam.Slam` over a sequence with a progress bar; lose nothing.
+"""Drive a :class:`~eifslam.system.slam.Slam` over a sequence with a progress bar; lose nothing.
 
-Ctrl-C or a failing frame stops the loop, and what was estimated so far is written.
+Ctrl-C or a failing frame stops the loop; :meth:`Slam.finish` then ends the run as the
+configured mode says, and what was estimated so far is returned. Writing the outputs is
+the caller's job (:func:`eifslam.evaluation.outputs.run_to_folder`).
 """
 
 from __future__ import annotations
 
 import sys
 import time
-from pathlib import Path
-from typing import Any
+from dataclasses import dataclass
 
 from tqdm import tqdm
 
-from .config import SlamConfig
 from ..errors import EifslamError, ImageError
-from ..evaluation.outputs import write_outputs
+from .config import SlamConfig
+from .finishing import FinishReport
 from .slam import Slam
 
+__all__ = ["RunResult", "run_sequence"]
 
-def run_sequence(seq, config: SlamConfig, out_dir: Path, max_frames: int | None = None,
-                 scale: tuple | None = None, html: bool = True, extra: dict[str, Any] | None = None,
-                 quiet: bool = False) -> dict[str, Any]:
-    """Run SLAM over ``seq`` (an :mod:`eifslam.io` sequence) and write the outputs."""
+
+@dataclass
+class RunResult:
+    """A finished run.
+
+    Attributes
+    ----------
+    slam : Slam
+        The system after :meth:`Slam.finish` (and the scale, when one was given).
+    seconds : float
+        Wall time of the run, ``finish`` included.
+    stopped : str or None
+        Why the run stopped early or a finishing step failed (None: it did not).
+    finish : FinishReport
+    """
+
+    slam: Slam
+    seconds: float
+    stopped: str | None
+    finish: FinishReport
+
+
+def run_sequence(seq, config: SlamConfig, max_frames: int | None = None, scale: tuple | None = None,
+                 quiet: bool = False) -> RunResult:
+    """Run SLAM over ``seq`` (an :mod:`eifslam.io` sequence, or anything with ``camera``,
+    ``frames[k].timestamp``, ``load(k)`` and ``len``), then :meth:`Slam.finish`.
+
+    Parameters
+    ----------
+    seq : sequence
+    config : SlamConfig
+    max_frames : int, optional
+        Process at most this many frames.
+    scale : ((kind, id), (kind, id), length), optional
+        A known length between two states (:meth:`Slam.set_scale`), applied at the end.
+    quiet : bool
+        Hide the progress bar.
+
+    Returns
+    -------
+    RunResult
+    """
     slam = Slam(seq.camera, config)
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     t0 = time.perf_counter()
@@ -44,37 +84,14 @@ def run_sequence(seq, config: SlamConfig, out_dir: Path, max_frames: int | None 
         bar.close()
     if stopped:
         print(f"eifslam: {stopped}; writing what was estimated so far", file=sys.stderr)
-    if stopped is None or stopped.startswith("stopped"):
-        try:  # one more chance for every frame without a pose, against the final map
-            slam.finish()
-        except EifslamError as exc:
-            print(f"eifslam: retrying lost frames failed ({exc})", file=sys.stderr)
-    if config.system.mode == "smooth" and slam.filter.layout.n_poses >= 2:
-        try:
-            slam.smooth()
-        except EifslamError as exc:  # keep the filter's estimate rather than lose the run
-            stopped = (stopped + "; " if stopped else "") + f"smoothing failed: {exc}"
-            print(f"eifslam: smoothing failed ({exc}); writing the filter's estimate", file=sys.stderr)
-    if config.system.mode == "ba" and slam.filter.layout.n_poses >= 2:
-        from ..baselines.bundle_adjustment import bundle_adjust_slam
-
-        try:
-            extra = dict(extra or {}, ba=bundle_adjust_slam(slam).summary())
-        except EifslamError as exc:  # keep the filter's estimate rather than lose the run
-            stopped = (stopped + "; " if stopped else "") + f"bundle adjustment failed: {exc}"
-            print(f"eifslam: bundle adjustment failed ({exc}); writing the filter's estimate", file=sys.stderr)
+    # after Ctrl-C the user wants out: no retrying of lost frames, only the mode's step
+    fin = slam.finish(retry=stopped is None or stopped.startswith("stopped"))
+    if fin.retry_error is not None:
+        print(f"eifslam: retrying lost frames failed ({fin.retry_error})", file=sys.stderr)
+    for msg in fin.failures:  # the filter's estimate is kept rather than the run lost
+        stopped = (stopped + "; " if stopped else "") + msg
+        print(f"eifslam: {msg}; writing the filter's estimate", file=sys.stderr)
     if scale is not None and slam.filter.layout.n_poses >= 2:
         a, b, length = scale
         slam.set_scale(a, b, length)
-    total = time.perf_counter() - t0
-    gt = seq.ground_truth() if getattr(seq, "has_ground_truth", False) else None
-    extra = dict(extra or {})
-    extra["source"] = str(getattr(seq, "root", ""))
-    if stopped:
-        extra["stopped"] = stopped
-    rep = write_outputs(slam, out_dir, total, gt, extra, html=html)
-    line = f"eifslam: {rep['frames_tracked']}/{rep['frames']} frames tracked, {rep['map_features']} map features, {rep['fps']} fps"
-    if "ate_rmse" in rep:
-        line += f", ATE {rep['ate_rmse']:.4g}"
-    print(line + f"; outputs in {out_dir}", file=sys.stderr)
-    return rep
+    return RunResult(slam, time.perf_counter() - t0, stopped, fin)

@@ -1,0 +1,195 @@
+"""Local mapping: what happens to a frame once its pose is in the state (Algorithm 1 steps 3-5).
+
+The :class:`Mapper` records each frame's map observations (``Zm``) per track, finds map
+features that tracking lost again (re-observation), triangulates new map features whose
+observations pass the filter's gate (:meth:`Mapper.fits`), fuses every ``Zm`` and
+recovers the state. It owns the per-track observation history and the feature colours;
+it talks to the front end and the filter through their public methods only.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..estimation.initialisation import triangulate
+from ..estimation.measurements import FeatureObservations
+from ..geometry.camera import PinholeCamera
+from .config import SlamConfig
+
+Array = NDArray[np.float64]
+
+__all__ = ["Mapper", "project"]
+
+_GREY = np.array([200, 200, 200], np.uint8)
+
+
+def project(camera: PinholeCamera, p: Array, q: Array, X: Array) -> tuple[Array, Array]:
+    """Pixels and depths of world points seen from poses (the ``Zm`` model).
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+    p : (3,) or (N, 3) camera centres.
+    q : (4,) or (N, 4) orientations ``q_wc``.
+    X : (N, 3) world points.
+
+    Returns
+    -------
+    h : (N, 2) pixels.
+    z : (N,) depths.
+    """
+    from ..geometry.models import feature_model
+
+    N = len(X)
+    h, _, _, z = feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X,
+                               camera.fx, camera.fy, camera.cx, camera.cy)
+    return h, z
+
+
+class Mapper:
+    """Map maintenance for a :class:`~eifslam.system.slam.Slam` (ORB-SLAM's LocalMapping).
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+    config : SlamConfig
+    frontend : object
+        The front end (:class:`~eifslam.frontend.FrontEnd` or a stand-in with the same
+        methods).
+    backend : object
+        The estimator (:class:`~eifslam.estimation.filter.InformationFilter`).
+    """
+
+    def __init__(self, camera: PinholeCamera, config: SlamConfig, frontend, backend) -> None:
+        self.camera = camera
+        self.config = config
+        self.frontend = frontend
+        self.filter = backend
+        self._track_obs: dict[int, list[tuple[int, Array]]] = {}
+        self._colors: dict[int, NDArray[np.uint8]] = {}
+
+    # -- queries ------------------------------------------------------------------
+    def colors(self, track_ids) -> NDArray[np.uint8]:
+        """RGB colours ``(F, 3)`` of map features (grey for a feature never coloured)."""
+        return np.array([self._colors.get(int(i), _GREY) for i in track_ids], np.uint8).reshape(-1, 3)
+
+    # -- per frame ----------------------------------------------------------------
+    def record_observations(self, k: int) -> tuple[NDArray[np.int64], Array]:
+        """Store frame *k*'s map observations per track (and first colours); return the
+        frame's ``Zm``: track ids ``(M,)`` and pixels ``(M, 2)``."""
+        ids, uv = self.frontend.map_observations(k)
+        ff = self.frontend.frame(k)
+        col = dict(zip(ff.track_ids.tolist(), ff.colors))
+        for t, u in zip(ids.tolist(), uv):
+            self._track_obs.setdefault(t, []).append((k, u))
+            if t not in self._colors and t in col:
+                self._colors[t] = np.asarray(col[t], np.uint8)
+        return ids, uv
+
+    def reobserve(self, k: int, p: Array, q: Array) -> int:
+        """Find map features that tracking lost again in frame *k*, by projecting them
+        with the pose guess ``(p, q)`` and matching descriptors nearby
+        (:meth:`FrontEnd.reobserve`); returns how many were found."""
+        r = self.config.reobserve_px
+        filt = self.filter
+        if not r or filt.layout.n_features == 0:
+            return 0
+        fids, X = filt.features()
+        fids = np.asarray(fids, np.int64)
+        seen, _ = self.frontend.map_observations(k)
+        cand = ~np.isin(fids, seen)
+        if not cand.any():
+            return 0
+        fids, X = fids[cand], X[cand]
+        c = self.camera
+        h, z = project(c, p, q, X)
+        vis = (z > filt.config.min_depth) & np.all(np.isfinite(h), 1) & (h[:, 0] >= 0) & (h[:, 1] >= 0) \
+            & (h[:, 0] <= c.width - 1) & (h[:, 1] <= c.height - 1)
+        if not vis.any():
+            return 0
+        return self.frontend.reobserve(k, fids[vis], h[vis], r)
+
+    def fuse_and_recover(self, k: int, t0: float, timings: dict[str, float]) -> None:
+        """Algorithm 1 steps 3-5 for a frame whose pose is in the state: new features,
+        fuse every ``Zm``, recover; ``t0`` is when initialisation started (for the
+        ``init``, ``fuse`` and ``recover`` entries of ``timings``, milliseconds)."""
+        ids, uv = self.record_observations(k)
+        batch = self.new_features(k, ids, uv)
+        t1 = time.perf_counter()
+        self.filter.fuse_features(batch)
+        t2 = time.perf_counter()
+        self.filter.recover_active()
+        t3 = time.perf_counter()
+        timings.update(init=1e3 * (t1 - t0), fuse=1e3 * (t2 - t1), recover=1e3 * (t3 - t2))
+
+    def new_features(self, k: int, ids: NDArray[np.int64], uv: Array) -> FeatureObservations:
+        """``Zm`` of frame *k* for known features, plus every observation of features that
+        can now be triangulated (Algorithm 1 step 3); the new features are added to the
+        state."""
+        filt, sysc = self.filter, self.config.system
+        known = filt.layout.has_features(ids)
+        p_k, q_k = filt.pose(k)
+        poses, feats, uvs = [np.full(int(known.sum()), k)], [ids[known]], [uv[known]]
+        new_ids, new_X = [], []
+        # first observation from a known pose of every unknown track, grouped by that pose
+        cand: dict[int, list[tuple[int, Array, Array, list]]] = {}
+        for t, u in zip(ids[~known].tolist(), uv[~known]):
+            hist = [(j, v) for j, v in self._track_obs.get(t, []) if j != k and filt.layout.has_pose(j)]
+            if hist:
+                cand.setdefault(hist[0][0], []).append((t, hist[0][1], u, hist))
+        tri: list[tuple[int, Array, NDArray[np.int64], Array]] = []  # (track, X, frames, uv)
+        for j, items in cand.items():
+            p_j, q_j = filt.pose(j)
+            uv_j = np.array([it[1] for it in items])
+            uv_k = np.array([it[2] for it in items])
+            X, par, ok = triangulate(p_j, q_j, uv_j, p_k, q_k, uv_k, self.camera)
+            for (t, _, u, hist), Xt, good in zip(items, X, ok & (par >= sysc.feature_parallax_deg)):
+                if good:
+                    tri.append((t, Xt, np.array([jj for jj, _ in hist] + [k]), np.array([vv for _, vv in hist] + [u])))
+        if tri:
+            counts = np.array([len(fr) for _, _, fr, _ in tri])
+            fits_all = self.fits(np.repeat(np.array([X for _, X, _, _ in tri]), counts, axis=0),
+                                 np.concatenate([fr for _, _, fr, _ in tri]),
+                                 np.concatenate([z for _, _, _, z in tri]))
+            for (t, Xt, fr, zs), fits in zip(tri, np.split(fits_all, np.cumsum(counts)[:-1])):
+                if not (fits[0] and fits[-1]):
+                    # the triangulating pair itself fails the gate: the feature would
+                    # enter with single-view (rank-2) information; leave it out
+                    continue
+                new_ids.append(t)
+                new_X.append(Xt)
+                poses.append(fr[fits])
+                feats.append(np.full(int(fits.sum()), t))
+                uvs.append(zs[fits])
+        if new_ids:
+            filt.add_features(new_ids, np.array(new_X))
+        return FeatureObservations.make(np.concatenate(poses), np.concatenate(feats),
+                                        np.concatenate(uvs).reshape(-1, 2), self.config.zm_sigma_px)
+
+    def fits(self, X: Array, frames: NDArray[np.int64], uv: Array) -> NDArray[np.bool_]:
+        """Which observations pass the filter's gate.
+
+        Parameters
+        ----------
+        X : (N, 3) points.
+        frames : (N,) ids of the observing poses (in the state).
+        uv : (N, 2) measured pixels.
+
+        Returns
+        -------
+        (N,) bool
+            In front of the camera and normalised innovation squared within the filter's
+            ``gate_chi2``: the observations :meth:`InformationFilter.fuse_features` would take.
+        """
+        filt = self.filter
+        cols = filt.layout.pose_columns(frames)
+        x = filt.x
+        h, z = project(self.camera, x[cols[:, :3]], x[cols[:, 3:]], np.asarray(X, float).reshape(-1, 3))
+        chi2 = np.sum((uv - h) ** 2, 1) / self.config.zm_sigma_px**2
+        ok = (z > filt.config.min_depth) & np.isfinite(chi2)
+        if filt.config.gate_chi2 is not None:
+            ok &= chi2 <= filt.config.gate_chi2
+        return ok

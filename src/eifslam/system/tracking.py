@@ -1,0 +1,235 @@
+"""Tracking: placing a frame in the state (paper III-C, III-F; ORB-SLAM's Tracking).
+
+The :class:`Tracker` finds a known pose related to a new frame by ``ZR``/``ZT`` (recent
+poses, then older ones after descriptor matching when tracking is lost), or localises the
+frame on the known map alone; it chooses the linearisation point (relative-pose guess,
+refined on the map when they agree), gates the ``ZR``/``ZT`` against the pose the map
+supports, adds the pose and fuses, then hands the frame to the :class:`~.mapping.Mapper`.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..estimation.initialisation import pose_from_relative
+from ..estimation.localisation import localise_pose
+from ..frontend.results import RelativePoseResult
+from ..geometry.camera import PinholeCamera
+from .config import SlamConfig
+from .mapping import Mapper, project
+
+Array = NDArray[np.float64]
+
+__all__ = ["Tracker", "agrees", "inlier_fraction"]
+
+
+def agrees(p_i: Array, p_k: Array, q_k: Array, sol, max_rot_deg: float, max_dir_deg: float) -> bool:
+    """Whether a map-refined pose agrees with the relative-pose guess.
+
+    Parameters
+    ----------
+    p_i : (3,) position of the reference pose.
+    p_k, q_k : (3,), (4,) the relative-pose guess of the new pose.
+    sol : tuple
+        ``(p, q, inliers)`` from :func:`~eifslam.estimation.localisation.localise_pose`.
+    max_rot_deg, max_dir_deg : float
+        Largest rotation between the two, and largest angle between their step
+        directions from ``p_i``, degrees.
+
+    Returns
+    -------
+    bool
+        Rotation and direction within bounds and most known features fit; a refinement
+        that disagrees was pulled away by bad matches.
+    """
+    from ..geometry.rotations import quat_conjugate, quat_log, quat_multiply
+
+    p, q, inl = sol
+    rot = np.degrees(np.linalg.norm(quat_log(quat_multiply(quat_conjugate(q_k), q))))
+    a, b = p_k - p_i, p - p_i
+    cosang = float(a @ b / max(np.linalg.norm(a) * np.linalg.norm(b), 1e-300))
+    return bool(rot <= max_rot_deg and cosang >= np.cos(np.radians(max_dir_deg)) and inl.mean() >= 0.5)
+
+
+def inlier_fraction(camera: PinholeCamera, p: Array, q: Array, X: Array, uv: Array, px: float) -> float:
+    """Fraction of known features ``X`` (N, 3) that pose ``(p, q)`` projects within ``px``
+    pixels of their measurements ``uv`` (N, 2)."""
+    h, z = project(camera, p, q, X)
+    return float(np.mean((z > 0) & (np.linalg.norm(uv - h, axis=1) < px)))
+
+
+class Tracker:
+    """Places frames in the state for a :class:`~eifslam.system.slam.Slam`.
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+    config : SlamConfig
+    frontend : object
+        The front end (``relative_pose``, ``relocalise``, ``map_observations``).
+    backend : object
+        The estimator (:class:`~eifslam.estimation.filter.InformationFilter`).
+    mapper : Mapper
+        Takes a frame over once its pose is in the state.
+
+    Attributes
+    ----------
+    rejected_relative : list of RelativePose
+        Relative poses the map contradicted or the gate refused (not fused).
+    """
+
+    def __init__(self, camera: PinholeCamera, config: SlamConfig, frontend, backend, mapper: Mapper) -> None:
+        self.camera = camera
+        self.config = config
+        self.frontend = frontend
+        self.filter = backend
+        self.mapper = mapper
+        self.rejected_relative: list = []
+        self._last_step = config.system.scale_distance
+
+    # -- references ---------------------------------------------------------------
+    def nearest_known(self, k: int) -> list[int]:
+        """Known pose ids, nearest to frame *k* first (for a new frame: most recent first)."""
+        return sorted(self.filter.layout.pose_ids, key=lambda c: (abs(c - k), -c))
+
+    def find_reference(self, k: int, timings: dict[str, float], relocalise: bool
+                       ) -> tuple[RelativePoseResult | None, RelativePoseResult | None]:
+        """A known pose related to frame *k* by ``ZR``/``ZT`` (III-C, III-F).
+
+        Without ``relocalise``: the most recent known poses, then a few further back (a
+        larger baseline when the camera moves slowly). With ``relocalise``: older poses,
+        after matching the frame against them (tracking lost).
+
+        Returns
+        -------
+        found : RelativePoseResult or None
+            The usable relative pose.
+        last : RelativePoseResult or None
+            The last one tried (its ``reason`` says why tracking failed).
+        """
+        sysc = self.config.system
+        known = self.nearest_known(k)
+        n = sysc.reference_candidates
+        if relocalise:
+            older = known[n: n + sysc.relocalise_candidates]
+            if not older:
+                return None, None
+            matches = self.frontend.relocalise(k, older)
+            group = [c for c, m in sorted(matches, key=lambda cm: -cm[1]) if m > 0][: sysc.relocalise_top]
+        else:
+            group = known[:n] + [known[i] for i in (2 * n, 4 * n) if i < len(known)]
+        last = None
+        for c in group:
+            r = self.frontend.relative_pose(c, k)
+            timings["relative_pose"] = timings.get("relative_pose", 0.0) + r.timings_ms.get("relative_pose", 0.0)
+            timings["covariance"] = timings.get("covariance", 0.0) + r.timings_ms.get("covariance", 0.0)
+            last = r
+            if r.ok and self.filter.layout.n_poses == 1 and r.parallax_deg < sysc.init_parallax_deg:
+                continue  # too narrow a baseline to initialise the map on
+            if r.ok:
+                return r, r
+        return None, last
+
+    # -- placing a frame ------------------------------------------------------------
+    def _known_map(self, k: int) -> tuple[NDArray[np.bool_], Array, Array]:
+        """Which of frame *k*'s ``Zm`` are of known features, their positions and pixels."""
+        filt = self.filter
+        ids, uv = self.frontend.map_observations(k)
+        known = filt.layout.has_features(ids)
+        X = filt.x[filt.layout.feature_columns(ids[known])] if known.any() else np.zeros((0, 3))
+        return known, X, uv[known]
+
+    def localise_from_map(self, k: int, timings: dict[str, float]) -> bool:
+        """Add frame *k* from ``Zm`` of known map features alone (no usable baseline);
+        False when there are too few of them or the pose does not converge."""
+        filt = self.filter
+        if filt.layout.n_poses < 2 or filt.layout.n_features == 0:
+            return False
+        t0 = time.perf_counter()
+        known, X, uv = self._known_map(k)
+        if known.sum() < self.config.system.min_map_features:
+            return False
+        p0, q0 = filt.pose(self.nearest_known(k)[0])
+        sol = localise_pose(self.camera, p0, q0, X, uv)
+        if sol is None:
+            return False
+        p, q, _ = sol
+        self.mapper.reobserve(k, p, q)
+        filt.add_pose(k, p, q)
+        self.mapper.fuse_and_recover(k, t0, timings)
+        return True
+
+    def localise_and_fuse(self, k: int, rpr: RelativePoseResult, timings: dict[str, float]) -> None:
+        """Algorithm 1 for frame *k* related to a known pose by ``rpr``: initial guesses,
+        augment with zeros, fuse ``ZR``/``ZT`` (unless gated out) and ``Zm``, recover."""
+        filt, sysc = self.filter, self.config.system
+        rp = rpr.measurement
+        t0 = time.perf_counter()
+        known, Xk, uvk = self._known_map(k)
+        p_i, q_i = filt.pose(rp.i)
+        first_step = filt.layout.n_poses == 1
+        init = pose_from_relative(p_i, q_i, rp, self.camera, Xk, uvk,
+                                  default_step=sysc.scale_distance if first_step else self._last_step)
+        p_k, q_k, step = init
+        use_relative, refined = True, False
+        if known.sum() >= sysc.min_map_features:  # a better linearisation point: refine on the known map
+            sol = localise_pose(self.camera, p_k, q_k, Xk, uvk)
+            frac = sol[2].mean() if sol is not None else 0.0
+            if sol is not None and agrees(p_i, p_k, q_k, sol, max_rot_deg=sysc.agree_rotation_deg,
+                                          max_dir_deg=sysc.agree_direction_deg):
+                p_k, q_k, refined = sol[0], sol[1], frac >= sysc.map_inlier_fraction
+            elif sol is not None and frac > sysc.contradiction_ratio * inlier_fraction(
+                    self.camera, p_k, q_k, Xk, uvk, sysc.inlier_radius_px):
+                # the map contradicts this relative pose: trust the map, drop the ZR/ZT
+                p_k, q_k, use_relative = sol[0], sol[1], False
+                self.rejected_relative.append(rp)
+            elif sol is not None and frac >= sysc.map_inlier_fraction:
+                # the map fits well where the relative pose points elsewhere (on a short
+                # baseline both guesses fit the map): linearise at the map's pose and let
+                # the chi-square gate below decide on the ZR/ZT
+                p_k, q_k, refined = sol[0], sol[1], True
+        self.mapper.reobserve(k, p_k, q_k)
+        filt.add_pose(k, p_k, q_k)
+        if first_step:
+            filt.set_scale(rp.i, k, sysc.scale_distance)
+        self._last_step = step if step > 0 else self._last_step
+        if use_relative and refined and sysc.relative_gate_chi2 is not None:
+            # ZR/ZT against the pose the map supports: an inconsistent one is not fused
+            _, _, W, innov = filt.linearise_relative([rp])
+            if float(innov[0] @ W[0] @ innov[0]) > sysc.relative_gate_chi2:
+                use_relative = False
+                self.rejected_relative.append(rp)
+        if use_relative:
+            filt.fuse_relative([rp])
+        self.mapper.fuse_and_recover(k, t0, timings)
+
+    def place_late(self, j: int, relative: bool, timings: dict[str, float]) -> tuple[bool, int | None]:
+        """Localise an earlier frame *j* that has no pose: from the map alone, else (with
+        ``relative``) from a relative pose to the nearest known poses.
+
+        The step length between consecutive frames (the scale guess of the next frame)
+        is left as it was. Raises :class:`~eifslam.errors.EstimatorError` as
+        :meth:`localise_and_fuse` does.
+
+        Returns
+        -------
+        placed : bool
+        reference : int or None
+            The reference pose of the relative pose used (None: placed on the map).
+        """
+        last_step = self._last_step
+        try:
+            if self.localise_from_map(j, timings):
+                return True, None
+            if not relative:
+                return False, None
+            rp, _ = self.find_reference(j, timings, relocalise=False)
+            if rp is None:
+                return False, None
+            self.localise_and_fuse(j, rp, timings)
+            return True, rp.measurement.i
+        finally:
+            self._last_step = last_step  # the step between consecutive frames, not this one's
