@@ -1,0 +1,92 @@
+"""The package's layers: each subpackage imports only from the layers below it.
+
+Parses every module with :mod:`ast` (imports inside functions included), resolves
+relative imports and checks them against :data:`ALLOWED`. The picture and the reasons
+are in ``docs/architecture.md``.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+import eifslam
+
+PACKAGE = Path(eifslam.__file__).resolve().parent
+
+#: layer -> the layers it may import (besides itself, ``eifslam.errors`` and ``eifslam``)
+ALLOWED: dict[str, set[str]] = {
+    "geometry": set(),
+    "estimation": {"geometry"},
+    "baselines": {"geometry", "estimation"},
+    "frontend": {"geometry", "estimation"},
+    "io": {"geometry"},
+    "sim": {"geometry", "estimation", "frontend"},
+    "system": {"geometry", "estimation", "baselines", "frontend"},
+    "evaluation": {"geometry", "estimation", "io", "system", "sim"},
+    "cli": {"geometry", "estimation", "baselines", "frontend", "io", "sim", "system", "evaluation"},
+}
+
+#: layers whose modules may not import OpenCV or matplotlib at all
+PURE = {"geometry", "estimation", "baselines"}
+
+
+def _modules() -> list[Path]:
+    return sorted(p for p in PACKAGE.rglob("*.py"))
+
+
+def _imports(path: Path) -> list[tuple[int, str]]:
+    """``(line, absolute module)`` of every import in *path* (relative ones resolved)."""
+    rel = path.relative_to(PACKAGE.parent).with_suffix("")
+    parts = list(rel.parts)
+    package = parts[:-1] if parts[-1] != "__init__" else parts[:-1]
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package[: len(package) - (node.level - 1)]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            if mod in ("eifslam",) or (node.level and not node.module):
+                out += [(node.lineno, f"{mod}.{a.name}") for a in node.names]
+            else:
+                out.append((node.lineno, mod))
+    return out
+
+
+def _layer(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 and parts[0] == "eifslam" else None
+
+
+def test_every_module_sits_in_a_layer():
+    top = sorted(p.name for p in PACKAGE.iterdir() if p.suffix == ".py" and p.name not in ("__init__.py", "errors.py"))
+    assert top == [], f"modules outside any layer: {top}"
+    dirs = sorted(p.name for p in PACKAGE.iterdir() if p.is_dir() and (p / "__init__.py").exists())
+    assert set(dirs) == set(ALLOWED), f"subpackages {dirs} vs layers {sorted(ALLOWED)}"
+
+
+@pytest.mark.parametrize("layer", sorted(ALLOWED))
+def test_layer_imports_only_from_below(layer):
+    bad = []
+    for path in (PACKAGE / layer).rglob("*.py"):
+        for line, mod in _imports(path):
+            target = _layer(mod)
+            if target is None or target in ("errors", "__version__") or target == layer:
+                if layer in PURE and mod.split(".")[0] in ("cv2", "matplotlib"):
+                    bad.append(f"{path.relative_to(PACKAGE)}:{line} imports {mod}")
+                continue
+            if target not in ALLOWED[layer]:
+                bad.append(f"{path.relative_to(PACKAGE)}:{line} imports {mod}")
+    assert not bad, f"layer {layer!r} reaches above itself:\n" + "\n".join(bad)
+
+
+def test_no_module_over_500_lines():
+    long = [f"{p.relative_to(PACKAGE)} ({n})" for p in _modules()
+            if (n := len(p.read_text().splitlines())) > 500]
+    assert not long, f"modules over 500 lines: {long}"
