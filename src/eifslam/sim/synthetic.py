@@ -148,39 +148,96 @@ def true_relative(scene: SyntheticScene, i: int, j: int) -> tuple[Array, Array]:
     return q, t / np.linalg.norm(t)
 
 
+def relative_covariance(sigma_rot: float = 1e-3, sigma_dir: float = 2e-3) -> Array:
+    """The ``(5, 5)`` covariance of simulated ``[dtheta, dt]`` relative-pose errors.
+
+    Standard deviations ``sigma_rot`` (radians, rotation vector of ``ZR``) and
+    ``sigma_dir`` (unit-vector tangent of ``ZT``), with correlation between rotation and
+    direction: rotation about y couples with the sideways direction error (0.5), rotation
+    about x with the vertical one (-0.4), as a five-point solution's errors do.
+    """
+    sd = np.array([sigma_rot] * 3 + [sigma_dir] * 2)
+    C = np.eye(5)
+    C[1, 3] = C[3, 1] = 0.5
+    C[0, 4] = C[4, 0] = -0.4
+    return C * np.outer(sd, sd)
+
+
+def _rng(seed: int, tag: int, *index: int) -> np.random.Generator:
+    """A generator for one draw of the noise model, keyed by ``(seed, tag, *index)``.
+
+    The key ends in a non-zero sentinel: ``SeedSequence`` ignores trailing zeros, so
+    ``(seed, 0)`` would otherwise draw what ``default_rng(seed)`` (often the scene's own
+    generator) draws.
+    """
+    return np.random.default_rng([int(seed), int(tag), *(int(i) for i in index), 0x5EED])
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Measurement noise of a synthetic scene, a deterministic function of its seed.
+
+    The pixel noise of point ``m`` in frame ``k`` is row ``m`` of an ``(M, 2)`` standard
+    normal draw keyed by ``(seed, 1, k)``, times ``sigma_px``; the error of the relative
+    pose from frame ``i`` to frame ``j`` is ``L e`` with ``L L^T = rel_cov`` and ``e`` a
+    standard normal 5-vector keyed by ``(seed, 2, i, j)``. Every measurement is therefore
+    the same however often, and in whatever order, it is asked for; :func:`simulate` and
+    :class:`eifslam.sim.frontend.SyntheticFrontEnd` built with the same seed measure the
+    same values.
+
+    Attributes
+    ----------
+    seed : int
+    sigma_px : float
+        Pixel noise standard deviation of ``Zm``, pixels (also the ``sigma_px`` the
+        measurements carry when ``noise`` is False).
+    rel_cov : (5, 5) covariance of ``[dtheta, dt]`` (see :func:`relative_covariance`).
+    noise : bool
+        False: every measurement is exact (the covariances stay as above).
+    """
+
+    seed: int
+    sigma_px: float = 1.0
+    rel_cov: Array = field(default_factory=relative_covariance)
+    noise: bool = True
+
+    def pixels(self, scene: SyntheticScene, k: int, idx: NDArray[np.int64]) -> Array:
+        """Measured pixels ``(N, 2)`` of scene points ``idx`` (N,) in frame *k*."""
+        uv = scene.project(k, idx)
+        if self.noise:
+            e = _rng(self.seed, 1, k).standard_normal((len(scene.points), 2))
+            uv = uv + self.sigma_px * e[idx]
+        return uv
+
+    def relative(self, scene: SyntheticScene, i: int, j: int) -> RelativePose:
+        """Measured ``ZR``/``ZT`` from frame *i* to frame *j* (i != j), with ``rel_cov``."""
+        q, t = true_relative(scene, i, j)
+        if self.noise:
+            e = np.linalg.cholesky(self.rel_cov) @ _rng(self.seed, 2, i, j).standard_normal(5)
+            q = quat_multiply(q, quat_exp(-e[:3]))
+            t = t - tangent_basis(t) @ e[3:]
+        return RelativePose(int(i), int(j), q, t, self.rel_cov)
+
+
 def simulate(
-    scene: SyntheticScene, rng: np.random.Generator, sigma_px: float = 1.0,
+    scene: SyntheticScene, rng: np.random.Generator | int, sigma_px: float = 1.0,
     rel_sigma_rot: float = 1e-3, rel_sigma_dir: float = 2e-3, max_range: float = 12.0,
     noise: bool = True,
 ) -> SyntheticMeasurements:
     """Simulate ``Zm`` for every visible point and ``ZR``/``ZT`` between consecutive frames.
 
-    Relative-pose noise ``[dtheta, dt]`` is drawn from a fixed covariance with
-    correlation between rotation and direction; with ``noise=False`` everything is exact.
+    The noise is :class:`NoiseModel`'s, seeded by ``rng`` (an int, or one integer drawn
+    from a generator); with ``noise=False`` everything is exact.
     """
+    seed = rng if isinstance(rng, (int, np.integer)) else int(rng.integers(2**63))
+    model = NoiseModel(int(seed), sigma_px, relative_covariance(rel_sigma_rot, rel_sigma_dir), noise)
     K = len(scene.positions)
     frames = []
     for k in range(K):
         idx = np.flatnonzero(scene.visible(k, max_range))
-        uv = scene.project(k, idx)
-        if noise:
-            uv = uv + sigma_px * rng.standard_normal(uv.shape)
-        frames.append(FeatureObservations.make(np.full(len(idx), k), idx, uv, sigma_px))
-    sd = np.array([rel_sigma_rot] * 3 + [rel_sigma_dir] * 2)
-    C = np.eye(5)
-    C[1, 3] = C[3, 1] = 0.5  # rotation about y couples with sideways direction error
-    C[0, 4] = C[4, 0] = -0.4
-    cov = C * np.outer(sd, sd)
-    Lc = np.linalg.cholesky(cov)
-    rel = []
-    for k in range(1, K):
-        q, t = true_relative(scene, k - 1, k)
-        if noise:
-            e = Lc @ rng.standard_normal(5)
-            q = quat_multiply(q, quat_exp(-e[:3]))
-            t = t - tangent_basis(t) @ e[3:]
-        rel.append(RelativePose(k - 1, k, q, t, cov))
-    return SyntheticMeasurements(frames, rel, cov)
+        frames.append(FeatureObservations.make(np.full(len(idx), k), idx, model.pixels(scene, k, idx), sigma_px))
+    rel = [model.relative(scene, k - 1, k) for k in range(1, K)]
+    return SyntheticMeasurements(frames, rel, model.rel_cov)
 
 
 @dataclass
