@@ -9,20 +9,18 @@ is set to the true distance between the first two poses.
 * :func:`orbit_scene`: a camera circling a cloud of points, looking inward (sideways
   motion, the case where the paper's ``ZT`` is singular).
 * :func:`simulate`: ``Zm`` with pixel noise and ``ZR``/``ZT`` with a known joint covariance.
-* :func:`run_filter`: Algorithm 1 driven by simulated measurements.
+* Algorithm 1 on these measurements is the system's own: :class:`eifslam.system.slam.Slam`
+  fed by :class:`eifslam.sim.frontend.SyntheticFrontEnd`.
 """
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..geometry.camera import PinholeCamera
-from ..estimation.filter import InformationFilter
 from ..geometry.rotations import (
     quat_conjugate,
     quat_exp,
@@ -32,7 +30,6 @@ from ..geometry.rotations import (
     rotmat_to_quat,
     tangent_basis,
 )
-from ..estimation.initialisation import pose_from_relative, triangulate
 from ..estimation.measurements import FeatureObservations, RelativePose
 
 Array = NDArray[np.float64]
@@ -238,87 +235,3 @@ def simulate(
         frames.append(FeatureObservations.make(np.full(len(idx), k), idx, model.pixels(scene, k, idx), sigma_px))
     rel = [model.relative(scene, k - 1, k) for k in range(1, K)]
     return SyntheticMeasurements(frames, rel, model.rel_cov)
-
-
-@dataclass
-class RunStats:
-    """Per-frame figures of :func:`run_filter`: state dimension, nnz and milliseconds."""
-
-    rows: list[dict] = field(default_factory=list)
-
-
-def run_filter(
-    scene: SyntheticScene, meas: SyntheticMeasurements, filt: InformationFilter,
-    scale_distance: float | None = None, min_parallax_deg: float = 1.0, recover: bool = True,
-    n_frames: int | None = None, stats: RunStats | None = None,
-    on_frame: Callable[[int, InformationFilter], None] | None = None,
-) -> InformationFilter:
-    """Run Algorithm 1 on simulated measurements.
-
-    Frame 0 is the world frame (strong prior); the scale prior fixes ``|p1 - p0|`` to
-    ``scale_distance`` (default: the true distance, so the estimate compares directly with
-    the truth). A point enters the map once seen from two poses with enough parallax; its
-    earlier observations are then fused too.
-
-    Each frame recovers with ``filt.recover_active()`` (the full solve unless the filter
-    was made with ``recovery="incremental"``; then the marginalised states are
-    back-substituted once at the end, so the final estimate is the full solve either
-    way). ``on_frame(k, filt)``, if given, is called after each frame, outside the timings.
-    """
-    cam = filt.camera
-    K = len(scene.positions) if n_frames is None else n_frames
-    d01 = float(np.linalg.norm(scene.positions[1] - scene.positions[0]))
-    scale = d01 if scale_distance is None else scale_distance
-    pending: dict[int, list[tuple[int, Array, float]]] = {}
-    filt.add_pose(0, np.zeros(3), np.array([1.0, 0, 0, 0]))
-    filt.fix_pose(0)
-    for k in range(K):
-        t0 = time.perf_counter()
-        obs = meas.frames[k]
-        if k > 0:
-            rp = meas.relative[k - 1]
-            p_i, q_i = filt.pose(k - 1)
-            known = filt.layout.has_features(obs.feature)
-            Xk = filt.x[filt.layout.feature_columns(obs.feature[known])] if known.any() else np.zeros((0, 3))
-            init = pose_from_relative(p_i, q_i, rp, cam, Xk, obs.uv[known], default_step=scale)
-            filt.add_pose(k, init[0], init[1])
-            if k == 1:
-                filt.set_scale(0, 1, scale)
-            filt.fuse_relative([rp])
-        known = filt.layout.has_features(obs.feature)
-        new_ids, new_X, back = [], [], []
-        p_k, q_k = filt.pose(k)
-        for tid, uv, s in zip(obs.feature[~known], obs.uv[~known], obs.sigma_px[~known]):
-            hist = pending.setdefault(int(tid), [])
-            if hist:
-                j, uv_j, _ = hist[0]
-                p_j, q_j = filt.pose(j)
-                X, par, ok = triangulate(p_j, q_j, uv_j[None], p_k, q_k, uv[None], cam)
-                if ok[0] and par[0] >= min_parallax_deg:
-                    new_ids.append(int(tid))
-                    new_X.append(X[0])
-                    back.extend(hist)
-                    del pending[int(tid)]
-                    continue
-            hist.append((k, uv, float(s)))
-        if new_ids:
-            filt.add_features(new_ids, np.array(new_X))
-        fuse = obs.subset(filt.layout.has_features(obs.feature))
-        if back:
-            # earlier observations of the new features: re-read them from the frames
-            extra = [meas.frames[j].subset(np.isin(meas.frames[j].feature, new_ids)) for j in sorted({b[0] for b in back})]
-            fuse = FeatureObservations.concatenate(extra + [fuse])
-        t1 = time.perf_counter()
-        filt.fuse_features(fuse)
-        t2 = time.perf_counter()
-        if recover:
-            filt.recover_active()
-        t3 = time.perf_counter()
-        if stats is not None:
-            stats.rows.append(dict(frame=k, state_dim=filt.dim, init_ms=1e3 * (t1 - t0),
-                                   fuse_ms=1e3 * (t2 - t1), recover_ms=1e3 * (t3 - t2)))
-        if on_frame is not None:
-            on_frame(k, filt)
-    if recover:
-        filt.complete_estimate()
-    return filt
