@@ -6,8 +6,11 @@ Usage::
 
 A camera walks down a synthetic corridor (:func:`eifslam.sim.synthetic.corridor_scene`,
 features entering and leaving view, no loop) until the state has ``--min-dim`` entries,
-driven by :func:`eifslam.sim.synthetic.run_filter` with incremental recovery
-(``InformationFilter(recovery="incremental")``). The same measurements are run again with
+driven by the system (:class:`eifslam.system.slam.Slam` fed by
+:class:`eifslam.sim.frontend.SyntheticFrontEnd`, every point in the map, the system's
+default settings) with incremental recovery (``InformationFilter(recovery="incremental")``
+as its back end); ``fuse_ms`` and ``recover_ms`` are the system's per-frame ``fuse`` and
+``recover`` timings. The same measurements are run again with
 the full solve each frame up to ``--full-max-dim`` entries, and during the incremental run
 the full solve is also timed (outside the per-frame timings) every ``--full-every``
 frames, where it checks that the active window equals the full solution.
@@ -50,7 +53,9 @@ from eifslam.estimation.filter import InformationFilter  # noqa: E402
 from eifslam.estimation.incremental import EntryMap  # noqa: E402
 from eifslam.estimation.recovery import factorize, sparse_cholesky  # noqa: E402
 from eifslam.estimation.measurements import RelativePose  # noqa: E402
-from eifslam.sim.synthetic import RunStats, corridor_scene, run_filter, simulate, true_relative  # noqa: E402
+from eifslam.sim.frontend import SyntheticFrontEnd  # noqa: E402
+from eifslam.sim.synthetic import corridor_scene, true_relative  # noqa: E402
+from eifslam.system.slam import Slam  # noqa: E402
 
 
 class BlockNnzCounter:
@@ -94,9 +99,11 @@ class _Stop(Exception):
     pass
 
 
-def run(scene, meas, mode: str, max_dim: int, window: int, full_every: int | None):
-    """Run the filter until ``max_dim`` state entries; return rows, samples, filter."""
-    filt = InformationFilter(scene.camera, recovery=mode, window=window)
+def run(scene, seed: int, mode: str, max_dim: int, window: int, full_every: int | None):
+    """Run the system until ``max_dim`` state entries; return rows, samples, filter."""
+    fe = SyntheticFrontEnd(scene, seed, map_fraction=1.0)
+    filt = InformationFilter(scene.camera, fe.slam_config().filter, recovery=mode, window=window)
+    slam = Slam(scene.camera, fe.slam_config(), frontend=fe, backend=filt)
     counter = BlockNnzCounter()
     if mode == "full":  # plain InformationStore: wrap add to feed the counter
         add = filt.info.add
@@ -108,11 +115,13 @@ def run(scene, meas, mode: str, max_dim: int, window: int, full_every: int | Non
         filt.info.add = add_counted
     else:
         filt.info.listeners.append(counter)
-    stats = RunStats()
+    rows: list[dict] = []
     samples: list[dict] = []
 
-    def on_frame(k: int, f: InformationFilter) -> None:
-        row = stats.rows[-1]
+    def on_frame(k: int, f: InformationFilter, res) -> None:
+        ms = res.timings_ms
+        row = dict(frame=k, state_dim=res.state_dim, fuse_ms=ms.get("fuse", 0.0), recover_ms=ms.get("recover", 0.0))
+        rows.append(row)
         row["nnz"] = counter.update(f.layout)
         if f.incremental is not None:
             row["window"] = len(f.incremental.active_indices)
@@ -141,12 +150,10 @@ def run(scene, meas, mode: str, max_dim: int, window: int, full_every: int | Non
 
     t_start = time.perf_counter()
     try:
-        run_filter(scene, meas, filt, stats=stats, on_frame=on_frame)
+        for k in range(len(scene.positions)):
+            on_frame(k, filt, slam.track(k))
     except _Stop:
         pass
-    rows = [dict(frame=r["frame"], state_dim=r["state_dim"], nnz=r["nnz"], fuse_ms=r["fuse_ms"],
-                 recover_ms=r["recover_ms"], **({"window": r["window"]} if "window" in r else {}))
-            for r in stats.rows]
     return rows, samples, filt, counter, time.perf_counter() - t_start
 
 
@@ -243,9 +250,8 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(args.seed)
     K = int(args.min_dim / 55) + 50
     scene = corridor_scene(K, rng)
-    meas = simulate(scene, rng)
     print(f"corridor: {K} frames, {len(scene.points)} points", flush=True)
-    inc, samples, filt, counter, t_inc = run(scene, meas, "incremental", args.min_dim, args.window, args.full_every)
+    inc, samples, filt, counter, t_inc = run(scene, args.seed, "incremental", args.min_dim, args.window, args.full_every)
     st = dict(vars(filt.incremental.stats))  # before the forced loop closure below
     t0 = time.perf_counter()
     filt.complete_estimate()
@@ -255,8 +261,8 @@ def main(argv: list[str] | None = None) -> int:
     x_ref = acc.pop("x_ref")
     solvers = compare_solvers(filt, I, x_ref) if args.compare_solvers else {}
     solvers["incremental_back_substitution"] = dict(ms=1e3 * t_back, **acc["incremental"])
-    loop = loop_closure(scene, meas, filt)
-    full, _, _, _, t_full = run(scene, meas, "full", args.full_max_dim, args.window, None)
+    loop = loop_closure(scene, filt)
+    full, _, _, _, t_full = run(scene, args.seed, "full", args.full_max_dim, args.window, None)
     res = dict(frames=inc, frames_full=full, full_samples=samples, final_accuracy=acc, solvers=solvers,
                loop_closure_fallback=loop)
     res["checks"] = checks(inc)
@@ -299,12 +305,12 @@ def accuracy(filt: InformationFilter, I) -> dict:
     return out
 
 
-def loop_closure(scene, meas, filt: InformationFilter) -> dict:
+def loop_closure(scene, filt: InformationFilter) -> dict:
     """Fuse a relative pose from the last frame back to frame 1 (touches a marginalised
     pose) and time the fallback: the window is rebuilt from the full sparse ``I``."""
     last = filt.layout.pose_ids[-1]
     q, t = true_relative(scene, 1, last)
-    filt.fuse_relative([RelativePose(1, last, q, t, meas.rel_cov)])
+    filt.fuse_relative([RelativePose(1, last, q, t, filt.store.relative[0].cov)])
     before = filt.incremental.stats.fallbacks
     t0 = time.perf_counter()
     filt.recover_active()

@@ -1,12 +1,14 @@
 """Per-frame back-end cost of the exactly sparse EIF against a dense EKF (MonoSLAM-style).
 
-The same synthetic corridor exploration (:func:`eifslam.sim.synthetic.corridor_scene` +
-:func:`eifslam.sim.synthetic.simulate`) runs through
+The same synthetic corridor exploration (:func:`eifslam.sim.synthetic.corridor_scene`,
+measured by :class:`eifslam.sim.frontend.SyntheticFrontEnd`, every point in the map) runs
+through the system (:class:`eifslam.system.slam.Slam`, default settings) with
 
 * the EIF with incremental recovery (paper III-G), and with the full solve, and
 * :class:`eifslam.baselines.ekf.DenseEKF` (same measurements, same linearisation, dense covariance),
 
-timing each frame's back end: EIF = fuse + recover, EKF = linearise + covariance update.
+timing each frame's back end (the system's ``fuse`` + ``recover`` timings): EIF = fuse +
+recover, EKF = linearise + covariance update.
 The EKF stops after the first frame whose update exceeds ``--ekf-budget-s``.
 
 Writes ``DIR/ekf_vs_eif.json`` (``{"eif": [{"frame", "state_dim", "ms"}...], "eif_full":
@@ -23,44 +25,41 @@ from pathlib import Path
 
 import numpy as np
 
-from eifslam.sim import synthetic
 from eifslam.baselines.ekf import DenseEKF
 from eifslam.estimation.filter import InformationFilter
+from eifslam.sim import synthetic
+from eifslam.sim.frontend import SyntheticFrontEnd
+from eifslam.system.slam import Slam
 
 
-class _Budget(Exception):
-    pass
-
-
-def _rows(stats: synthetic.RunStats) -> list[dict]:
-    return [dict(frame=r["frame"], state_dim=r["state_dim"], ms=round(r["fuse_ms"] + r["recover_ms"], 3))
-            for r in stats.rows]
+def _track(scene, seed: int, backend: str, budget_s: float | None = None) -> list[dict]:
+    """The system over the scene with one back end ("incremental", "full" or "ekf");
+    per-frame rows; stops after the first frame whose back end took over ``budget_s``."""
+    fe = SyntheticFrontEnd(scene, seed, map_fraction=1.0)
+    config = fe.slam_config()
+    filt = DenseEKF(scene.camera, config.filter) if backend == "ekf" else \
+        InformationFilter(scene.camera, config.filter, recovery=backend)
+    slam = Slam(scene.camera, config, frontend=fe, backend=filt)
+    rows = []
+    for k in range(len(scene.positions)):
+        res = slam.track(k)
+        ms = res.timings_ms.get("fuse", 0.0) + res.timings_ms.get("recover", 0.0)
+        rows.append(dict(frame=k, state_dim=res.state_dim, ms=round(ms, 3)))
+        if budget_s is not None and ms > 1e3 * budget_s:
+            break
+    return rows
 
 
 def run(n_frames: int, seed: int, budget_s: float) -> dict:
     """Run the three back ends on one simulated corridor; return the JSON dict."""
     rng = np.random.default_rng(seed)
     scene = synthetic.corridor_scene(n_frames, rng)
-    meas = synthetic.simulate(scene, rng)
     out: dict = {"n_frames": n_frames, "seed": seed, "ekf_budget_s": budget_s}
     for key, recovery in (("eif", "incremental"), ("eif_full", "full")):
-        st = synthetic.RunStats()
-        synthetic.run_filter(scene, meas, InformationFilter(scene.camera, recovery=recovery), stats=st)
-        out[key] = _rows(st)
-    st = synthetic.RunStats()
-
-    def check(k: int, filt) -> None:
-        r = st.rows[-1]
-        if (r["fuse_ms"] + r["recover_ms"]) > 1e3 * budget_s:
-            raise _Budget
-
-    stopped = None
-    try:
-        synthetic.run_filter(scene, meas, DenseEKF(scene.camera), stats=st, on_frame=check)
-    except _Budget:
-        stopped = st.rows[-1]["state_dim"]
-    out["ekf"] = _rows(st)
-    out["ekf_stopped_at_state_dim"] = stopped
+        out[key] = _track(scene, seed, recovery)
+    out["ekf"] = _track(scene, seed, "ekf", budget_s)
+    stopped = len(out["ekf"]) < n_frames
+    out["ekf_stopped_at_state_dim"] = out["ekf"][-1]["state_dim"] if stopped else None
     return out
 
 

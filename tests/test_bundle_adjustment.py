@@ -54,7 +54,10 @@ def test_noisy_scene_error_band(solver):
     P, Q = _perturbed(sc, rng)
     r = bundle_adjust(sc.camera, np.arange(10), P, Q, obs, BAConfig(solver=solver, max_initial_px=50.0))
     err = np.abs(r.positions - sc.positions).max()
-    assert 1e-5 < err < 0.05
+    # max position error over 10 frames, gauge on the first 0.5 m baseline: over seeds 0-11
+    # it spreads from 0.005 to 0.10 (0.008 to 0.07 with simulate's earlier noise stream),
+    # so the upper bound is 0.15, not a value one realisation happened to meet
+    assert 1e-5 < err < 0.15
     assert 0.3 < r.final_rms_px < 0.8  # |r| of a 2-vector: about sqrt(2) sigma_px, less the fitted dof
     assert r.final_rms_px < r.initial_rms_px
 

@@ -4,17 +4,29 @@ from __future__ import annotations
 
 import numpy as np
 
-from eifslam.sim import synthetic
 from eifslam.baselines.ekf import DenseEKF
-from eifslam.estimation.filter import InformationFilter
+from eifslam.sim import synthetic
+from eifslam.sim.frontend import SyntheticFrontEnd
+from eifslam.system.slam import Slam
+
+
+def run(sc, seed: int, ekf: bool, **kw):
+    """The system over every frame of ``sc`` with the EIF (its default back end) or the
+    dense EKF, on the same simulated measurements; the filter at its complete estimate."""
+    fe = SyntheticFrontEnd(sc, seed, map_fraction=1.0, **kw)
+    config = fe.slam_config()
+    slam = Slam(sc.camera, config, frontend=fe, backend=DenseEKF(sc.camera, config.filter) if ekf else None)
+    for k in range(len(sc.positions)):
+        slam.track(k)
+    slam.filter.complete_estimate()
+    return slam.filter
 
 
 def test_ekf_estimate_and_covariance_agree_with_eif():
     rng = np.random.default_rng(1)
     sc = synthetic.corridor_scene(8, rng, points_per_metre=10)
-    meas = synthetic.simulate(sc, rng, sigma_px=0.5)
-    eif = synthetic.run_filter(sc, meas, InformationFilter(sc.camera))
-    ekf = synthetic.run_filter(sc, meas, DenseEKF(sc.camera))
+    eif = run(sc, 1, ekf=False, sigma_px=0.5)
+    ekf = run(sc, 1, ekf=True, sigma_px=0.5)
     assert ekf.dim == eif.dim > 200
     _, P1, Q1 = eif.poses()
     _, P2, Q2 = ekf.poses()
@@ -30,8 +42,7 @@ def test_ekf_estimate_and_covariance_agree_with_eif():
 def test_ekf_update_reduces_only_the_touched_uncertainty():
     rng = np.random.default_rng(2)
     sc = synthetic.corridor_scene(3, rng, points_per_metre=5)
-    meas = synthetic.simulate(sc, rng, noise=False)
-    ekf = synthetic.run_filter(sc, meas, DenseEKF(sc.camera))
+    ekf = run(sc, 2, ekf=True, noise=False)
     assert np.allclose(ekf.P, ekf.P.T)
     assert np.all(np.linalg.eigvalsh(ekf.P) > -1e-9 * np.abs(ekf.P).max())
     _, P, _ = ekf.poses()

@@ -48,7 +48,7 @@ def test_camera_projection_and_validation():
         PinholeCamera(-1, 500, 320, 240, 640, 480)
 
 
-@pytest.mark.parametrize("module", ["geometry.rotations", "geometry.camera", "geometry.models", "estimation.state", "estimation.filter", "estimation.recovery", "estimation.smoothing", "estimation.incremental", "estimation.localisation", "sim.synthetic", "estimation.initialisation", "baselines.bundle_adjustment", "baselines.ekf", "evaluation.metrics", "system.config"])
+@pytest.mark.parametrize("module", ["geometry.rotations", "geometry.camera", "geometry.models", "estimation.state", "estimation.filter", "estimation.recovery", "estimation.smoothing", "estimation.incremental", "estimation.localisation", "sim.synthetic", "sim.frontend", "estimation.initialisation", "baselines.bundle_adjustment", "baselines.ekf", "evaluation.metrics", "system.config"])
 def test_core_modules_import_neither_cv2_nor_matplotlib(module):
     code = f"import sys, eifslam.{module}; bad=[m for m in ('cv2','matplotlib') if m in sys.modules]; print(','.join(bad)); sys.exit(1 if bad else 0)"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)

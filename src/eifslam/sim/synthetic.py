@@ -9,20 +9,18 @@ is set to the true distance between the first two poses.
 * :func:`orbit_scene`: a camera circling a cloud of points, looking inward (sideways
   motion, the case where the paper's ``ZT`` is singular).
 * :func:`simulate`: ``Zm`` with pixel noise and ``ZR``/``ZT`` with a known joint covariance.
-* :func:`run_filter`: Algorithm 1 driven by simulated measurements.
+* Algorithm 1 on these measurements is the system's own: :class:`eifslam.system.slam.Slam`
+  fed by :class:`eifslam.sim.frontend.SyntheticFrontEnd`.
 """
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..geometry.camera import PinholeCamera
-from ..estimation.filter import InformationFilter
 from ..geometry.rotations import (
     quat_conjugate,
     quat_exp,
@@ -32,7 +30,6 @@ from ..geometry.rotations import (
     rotmat_to_quat,
     tangent_basis,
 )
-from ..estimation.initialisation import pose_from_relative, triangulate
 from ..estimation.measurements import FeatureObservations, RelativePose
 
 Array = NDArray[np.float64]
@@ -148,120 +145,93 @@ def true_relative(scene: SyntheticScene, i: int, j: int) -> tuple[Array, Array]:
     return q, t / np.linalg.norm(t)
 
 
+def relative_covariance(sigma_rot: float = 1e-3, sigma_dir: float = 2e-3) -> Array:
+    """The ``(5, 5)`` covariance of simulated ``[dtheta, dt]`` relative-pose errors.
+
+    Standard deviations ``sigma_rot`` (radians, rotation vector of ``ZR``) and
+    ``sigma_dir`` (unit-vector tangent of ``ZT``), with correlation between rotation and
+    direction: rotation about y couples with the sideways direction error (0.5), rotation
+    about x with the vertical one (-0.4), as a five-point solution's errors do.
+    """
+    sd = np.array([sigma_rot] * 3 + [sigma_dir] * 2)
+    C = np.eye(5)
+    C[1, 3] = C[3, 1] = 0.5
+    C[0, 4] = C[4, 0] = -0.4
+    return C * np.outer(sd, sd)
+
+
+def _rng(seed: int, tag: int, *index: int) -> np.random.Generator:
+    """A generator for one draw of the noise model, keyed by ``(seed, tag, *index)``.
+
+    The key ends in a non-zero sentinel: ``SeedSequence`` ignores trailing zeros, so
+    ``(seed, 0)`` would otherwise draw what ``default_rng(seed)`` (often the scene's own
+    generator) draws.
+    """
+    return np.random.default_rng([int(seed), int(tag), *(int(i) for i in index), 0x5EED])
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Measurement noise of a synthetic scene, a deterministic function of its seed.
+
+    The pixel noise of point ``m`` in frame ``k`` is row ``m`` of an ``(M, 2)`` standard
+    normal draw keyed by ``(seed, 1, k)``, times ``sigma_px``; the error of the relative
+    pose from frame ``i`` to frame ``j`` is ``L e`` with ``L L^T = rel_cov`` and ``e`` a
+    standard normal 5-vector keyed by ``(seed, 2, i, j)``. Every measurement is therefore
+    the same however often, and in whatever order, it is asked for; :func:`simulate` and
+    :class:`eifslam.sim.frontend.SyntheticFrontEnd` built with the same seed measure the
+    same values.
+
+    Attributes
+    ----------
+    seed : int
+    sigma_px : float
+        Pixel noise standard deviation of ``Zm``, pixels (also the ``sigma_px`` the
+        measurements carry when ``noise`` is False).
+    rel_cov : (5, 5) covariance of ``[dtheta, dt]`` (see :func:`relative_covariance`).
+    noise : bool
+        False: every measurement is exact (the covariances stay as above).
+    """
+
+    seed: int
+    sigma_px: float = 1.0
+    rel_cov: Array = field(default_factory=relative_covariance)
+    noise: bool = True
+
+    def pixels(self, scene: SyntheticScene, k: int, idx: NDArray[np.int64]) -> Array:
+        """Measured pixels ``(N, 2)`` of scene points ``idx`` (N,) in frame *k*."""
+        uv = scene.project(k, idx)
+        if self.noise:
+            e = _rng(self.seed, 1, k).standard_normal((len(scene.points), 2))
+            uv = uv + self.sigma_px * e[idx]
+        return uv
+
+    def relative(self, scene: SyntheticScene, i: int, j: int) -> RelativePose:
+        """Measured ``ZR``/``ZT`` from frame *i* to frame *j* (i != j), with ``rel_cov``."""
+        q, t = true_relative(scene, i, j)
+        if self.noise:
+            e = np.linalg.cholesky(self.rel_cov) @ _rng(self.seed, 2, i, j).standard_normal(5)
+            q = quat_multiply(q, quat_exp(-e[:3]))
+            t = t - tangent_basis(t) @ e[3:]
+        return RelativePose(int(i), int(j), q, t, self.rel_cov)
+
+
 def simulate(
-    scene: SyntheticScene, rng: np.random.Generator, sigma_px: float = 1.0,
+    scene: SyntheticScene, rng: np.random.Generator | int, sigma_px: float = 1.0,
     rel_sigma_rot: float = 1e-3, rel_sigma_dir: float = 2e-3, max_range: float = 12.0,
     noise: bool = True,
 ) -> SyntheticMeasurements:
     """Simulate ``Zm`` for every visible point and ``ZR``/``ZT`` between consecutive frames.
 
-    Relative-pose noise ``[dtheta, dt]`` is drawn from a fixed covariance with
-    correlation between rotation and direction; with ``noise=False`` everything is exact.
+    The noise is :class:`NoiseModel`'s, seeded by ``rng`` (an int, or one integer drawn
+    from a generator); with ``noise=False`` everything is exact.
     """
+    seed = rng if isinstance(rng, (int, np.integer)) else int(rng.integers(2**63))
+    model = NoiseModel(int(seed), sigma_px, relative_covariance(rel_sigma_rot, rel_sigma_dir), noise)
     K = len(scene.positions)
     frames = []
     for k in range(K):
         idx = np.flatnonzero(scene.visible(k, max_range))
-        uv = scene.project(k, idx)
-        if noise:
-            uv = uv + sigma_px * rng.standard_normal(uv.shape)
-        frames.append(FeatureObservations.make(np.full(len(idx), k), idx, uv, sigma_px))
-    sd = np.array([rel_sigma_rot] * 3 + [rel_sigma_dir] * 2)
-    C = np.eye(5)
-    C[1, 3] = C[3, 1] = 0.5  # rotation about y couples with sideways direction error
-    C[0, 4] = C[4, 0] = -0.4
-    cov = C * np.outer(sd, sd)
-    Lc = np.linalg.cholesky(cov)
-    rel = []
-    for k in range(1, K):
-        q, t = true_relative(scene, k - 1, k)
-        if noise:
-            e = Lc @ rng.standard_normal(5)
-            q = quat_multiply(q, quat_exp(-e[:3]))
-            t = t - tangent_basis(t) @ e[3:]
-        rel.append(RelativePose(k - 1, k, q, t, cov))
-    return SyntheticMeasurements(frames, rel, cov)
-
-
-@dataclass
-class RunStats:
-    """Per-frame figures of :func:`run_filter`: state dimension, nnz and milliseconds."""
-
-    rows: list[dict] = field(default_factory=list)
-
-
-def run_filter(
-    scene: SyntheticScene, meas: SyntheticMeasurements, filt: InformationFilter,
-    scale_distance: float | None = None, min_parallax_deg: float = 1.0, recover: bool = True,
-    n_frames: int | None = None, stats: RunStats | None = None,
-    on_frame: Callable[[int, InformationFilter], None] | None = None,
-) -> InformationFilter:
-    """Run Algorithm 1 on simulated measurements.
-
-    Frame 0 is the world frame (strong prior); the scale prior fixes ``|p1 - p0|`` to
-    ``scale_distance`` (default: the true distance, so the estimate compares directly with
-    the truth). A point enters the map once seen from two poses with enough parallax; its
-    earlier observations are then fused too.
-
-    Each frame recovers with ``filt.recover_active()`` (the full solve unless the filter
-    was made with ``recovery="incremental"``; then the marginalised states are
-    back-substituted once at the end, so the final estimate is the full solve either
-    way). ``on_frame(k, filt)``, if given, is called after each frame, outside the timings.
-    """
-    cam = filt.camera
-    K = len(scene.positions) if n_frames is None else n_frames
-    d01 = float(np.linalg.norm(scene.positions[1] - scene.positions[0]))
-    scale = d01 if scale_distance is None else scale_distance
-    pending: dict[int, list[tuple[int, Array, float]]] = {}
-    filt.add_pose(0, np.zeros(3), np.array([1.0, 0, 0, 0]))
-    filt.fix_pose(0)
-    for k in range(K):
-        t0 = time.perf_counter()
-        obs = meas.frames[k]
-        if k > 0:
-            rp = meas.relative[k - 1]
-            p_i, q_i = filt.pose(k - 1)
-            known = filt.layout.has_features(obs.feature)
-            Xk = filt.x[filt.layout.feature_columns(obs.feature[known])] if known.any() else np.zeros((0, 3))
-            init = pose_from_relative(p_i, q_i, rp, cam, Xk, obs.uv[known], default_step=scale)
-            filt.add_pose(k, init[0], init[1])
-            if k == 1:
-                filt.set_scale(0, 1, scale)
-            filt.fuse_relative([rp])
-        known = filt.layout.has_features(obs.feature)
-        new_ids, new_X, back = [], [], []
-        p_k, q_k = filt.pose(k)
-        for tid, uv, s in zip(obs.feature[~known], obs.uv[~known], obs.sigma_px[~known]):
-            hist = pending.setdefault(int(tid), [])
-            if hist:
-                j, uv_j, _ = hist[0]
-                p_j, q_j = filt.pose(j)
-                X, par, ok = triangulate(p_j, q_j, uv_j[None], p_k, q_k, uv[None], cam)
-                if ok[0] and par[0] >= min_parallax_deg:
-                    new_ids.append(int(tid))
-                    new_X.append(X[0])
-                    back.extend(hist)
-                    del pending[int(tid)]
-                    continue
-            hist.append((k, uv, float(s)))
-        if new_ids:
-            filt.add_features(new_ids, np.array(new_X))
-        fuse = obs.subset(filt.layout.has_features(obs.feature))
-        if back:
-            # earlier observations of the new features: re-read them from the frames
-            extra = [meas.frames[j].subset(np.isin(meas.frames[j].feature, new_ids)) for j in sorted({b[0] for b in back})]
-            fuse = FeatureObservations.concatenate(extra + [fuse])
-        t1 = time.perf_counter()
-        filt.fuse_features(fuse)
-        t2 = time.perf_counter()
-        if recover:
-            filt.recover_active()
-        t3 = time.perf_counter()
-        if stats is not None:
-            stats.rows.append(dict(frame=k, state_dim=filt.dim, init_ms=1e3 * (t1 - t0),
-                                   fuse_ms=1e3 * (t2 - t1), recover_ms=1e3 * (t3 - t2)))
-        if on_frame is not None:
-            on_frame(k, filt)
-    if recover:
-        filt.complete_estimate()
-    return filt
+        frames.append(FeatureObservations.make(np.full(len(idx), k), idx, model.pixels(scene, k, idx), sigma_px))
+    rel = [model.relative(scene, k - 1, k) for k in range(1, K)]
+    return SyntheticMeasurements(frames, rel, model.rel_cov)
