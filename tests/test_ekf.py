@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from eifslam.baselines.ekf import DenseEKF
+from eifslam.estimation.filter import InformationFilter
 from eifslam.sim import synthetic
 from eifslam.sim.frontend import SyntheticFrontEnd
 from eifslam.system.slam import Slam

@@ -23,7 +23,7 @@ ALLOWED: dict[str, set[str]] = {
     "baselines": {"geometry", "estimation"},
     "frontend": {"geometry", "estimation"},
     "io": {"geometry"},
-    "sim": {"geometry", "estimation", "frontend"},
+    "sim": {"geometry", "estimation", "frontend", "system"},
     "system": {"geometry", "estimation", "baselines", "frontend"},
     "evaluation": {"geometry", "estimation", "io", "system", "sim"},
     "cli": {"geometry", "estimation", "baselines", "frontend", "io", "sim", "system", "evaluation"},

@@ -14,14 +14,16 @@ import numpy as np
 from ..errors import ConfigError
 
 
-class _StrEnum(str, Enum):
-    """A ``str``-valued enum that prints as its value."""
+class Choice(str, Enum):
+    """A ``str``-valued enum that prints as its value: the base of every option with a
+    fixed set of values (:class:`ZtForm`, :class:`Recovery`, the front end's
+    ``Detector``, the system's ``Mode``), so that configs given as plain strings work."""
 
     def __str__(self) -> str:
         return str(self.value)
 
     @classmethod
-    def parse(cls, value: "str | _StrEnum", what: str):
+    def parse(cls, value: "str | Choice", what: str):
         """The member whose value is ``value``; :class:`ConfigError` naming ``what`` otherwise."""
         try:
             return cls(value)
@@ -30,7 +32,7 @@ class _StrEnum(str, Enum):
             raise ConfigError(f"{what} must be one of {allowed}, got {value!r}") from None
 
 
-class ZtForm(_StrEnum):
+class ZtForm(Choice):
     """Model of the translation-direction measurement ``ZT``.
 
     ``PAPER``: the paper's ``[x/z, y/z]``; ``BEARING``: the non-singular bearing form;
@@ -43,7 +45,7 @@ class ZtForm(_StrEnum):
     BEARING = "bearing"
 
 
-class Recovery(_StrEnum):
+class Recovery(Choice):
     """Per-frame state recovery of :class:`~eifslam.estimation.filter.InformationFilter`.
 
     ``INCREMENTAL``: exact over an active window, the rest marginalised

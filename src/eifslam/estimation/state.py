@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from ..errors import EstimatorError
 from ..geometry.rotations import quat_left_matrix, quat_normalize
-from .options import _StrEnum
+from .options import Choice
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -28,7 +28,7 @@ POSE_DIM = 7
 FEATURE_DIM = 3
 
 
-class StateKind(_StrEnum):
+class StateKind(Choice):
     """Kind of a state: a camera pose ``[p (3), q (4)]`` or a map feature ``[x, y, z]``."""
 
     POSE = "pose"

@@ -7,15 +7,15 @@ checked when the detector is created (:mod:`eifslam.frontend.features`).
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from enum import Enum
 from typing import Any, Mapping
 
 from ..errors import ConfigError
+from ..estimation.options import Choice
 
 __all__ = ["FrontEndConfig", "Detector", "CovarianceMethod", "DETECTORS", "COVARIANCE_METHODS"]
 
 
-class Detector(str, Enum):
+class Detector(Choice):
     """Feature detector/descriptor (a ``str`` enum: ``"sift"`` and ``Detector.SIFT`` are equal)."""
 
     SIFT = "sift"
@@ -23,23 +23,17 @@ class Detector(str, Enum):
     AKAZE = "akaze"
     SURF = "surf"
 
-    def __str__(self) -> str:
-        return str(self.value)
-
     @property
     def float_descriptors(self) -> bool:
         """Whether its descriptors are floats (SIFT, SURF) rather than binary (ORB, AKAZE)."""
         return self in (Detector.SIFT, Detector.SURF)
 
 
-class CovarianceMethod(str, Enum):
+class CovarianceMethod(Choice):
     """How the relative pose's covariance is computed (a ``str`` enum)."""
 
     FAST = "fast"  #: first order, ``sigma_px**2 (J^T J)^-1`` of the Sampson residuals
     UT = "ut"  #: unscented transform of the point noise through the refinement
-
-    def __str__(self) -> str:
-        return str(self.value)
 
 
 DETECTORS = tuple(d.value for d in Detector)

@@ -300,7 +300,7 @@ class FrontEnd:
         Dk = self._desc[fid]
         # Lowe's ratio test over the whole frame (the radius only checks where the nearest
         # descriptor is): nearest and second-nearest keypoint of each track's descriptor
-        knn = self._matcher._knn(D.astype(Dk.dtype), Dk, 2)
+        knn = self._matcher.knn(D.astype(Dk.dtype), Dk, 2)
         best = np.array([m[0].trainIdx if len(m) == 2 else 0 for m in knn], np.int64)
         d1 = np.array([m[0].distance if len(m) == 2 else np.inf for m in knn])
         d2 = np.array([m[1].distance if len(m) == 2 else 0.0 for m in knn])

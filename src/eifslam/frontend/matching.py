@@ -38,7 +38,10 @@ class DescriptorMatcher:
         self._flann = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 48})
         self._hamming = cv2.BFMatcher(cv2.NORM_HAMMING)
 
-    def _knn(self, q: NDArray, t: NDArray, k: int) -> list:
+    def knn(self, q: NDArray, t: NDArray, k: int) -> list:
+        """The ``k`` nearest descriptors of ``t (N2, D)`` for each of ``q (N1, D)``:
+        OpenCV ``DMatch`` lists (Hamming for ``uint8`` binary descriptors, FLANN k-d
+        trees for float ones)."""
         if q.dtype == np.uint8:
             return self._hamming.knnMatch(q, t, k=k)
         return self._flann.knnMatch(np.asarray(q, np.float32), np.asarray(t, np.float32), k=k)
@@ -52,7 +55,7 @@ class DescriptorMatcher:
         """
         if len(d1) < 2 or len(d2) < 2:
             return _EMPTY
-        knn = self._knn(d1, d2, 2)
+        knn = self.knn(d1, d2, 2)
         q, tr = [], []
         for m in knn:
             if len(m) == 2 and m[0].distance < self.ratio * m[1].distance:
@@ -64,7 +67,7 @@ class DescriptorMatcher:
             return _EMPTY
         if self.mutual:
             cand = np.unique(i2)
-            back = self._knn(d2[cand], d1, 1)
+            back = self.knn(d2[cand], d1, 1)
             best = np.full(len(d2), -1, np.int64)
             best[cand] = [m[0].trainIdx if len(m) else -1 for m in back]
             keep = best[i2] == i1

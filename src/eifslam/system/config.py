@@ -9,15 +9,14 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from enum import Enum
 from typing import Any, Mapping
 
 from ..errors import ConfigError
-from ..estimation.filter import FilterConfig
+from ..estimation.options import Choice, FilterConfig, Recovery
 from ..frontend import FrontEndConfig
 
 
-class Mode(str, Enum):
+class Mode(Choice):
     """What a run does after the last image (:meth:`Slam.finish <eifslam.system.slam.Slam.finish>`).
 
     A ``str`` enum: ``Mode("smooth")``, ``Mode.SMOOTH == "smooth"`` and configs given as
@@ -27,9 +26,6 @@ class Mode(str, Enum):
     FILTER = "filter"  #: the filter's estimate
     SMOOTH = "smooth"  #: relinearise every stored measurement and smooth (paper III-E)
     BA = "ba"  #: full bundle adjustment of every track
-
-    def __str__(self) -> str:
-        return str(self.value)
 
 
 @dataclass(frozen=True)
@@ -82,7 +78,7 @@ class SystemConfig:
         descriptors (SIFT, SURF), off for binary ones (ORB, AKAZE), whose ratio test let
         wrong re-observations in on kitti-seq1 (ATE 5.7 m with, 0.034 m without). See
         :meth:`SlamConfig.reobserve_px`.
-    recovery : {"incremental", "full"}
+    recovery : Recovery or {"incremental", "full"}
         Per-frame state recovery: exact over an active window with the rest marginalised
         (paper III-G, :mod:`eifslam.incremental`), or the full sparse solve.
     window : int
@@ -121,7 +117,7 @@ class SystemConfig:
     init_parallax_deg: float = 0.5
     sigma_px: float | None = None
     scale_distance: float = 1.0
-    recovery: str = "incremental"
+    recovery: Recovery = Recovery.INCREMENTAL
     window: int = 5
     relative_gate_chi2: float | None = 50.0
     robust_smoothing: bool = True
@@ -156,8 +152,7 @@ class SystemConfig:
                 raise ConfigError(f"system.{key} must be at least 1")
         if self.relative_gate_chi2 is not None and not self.relative_gate_chi2 > 0:
             raise ConfigError("system.relative_gate_chi2 must be positive or None")
-        if self.recovery not in ("incremental", "full"):
-            raise ConfigError(f"system.recovery must be 'incremental' or 'full', got {self.recovery!r}")
+        object.__setattr__(self, "recovery", Recovery.parse(self.recovery, "system.recovery"))
         if int(self.window) < 1:
             raise ConfigError("system.window must be at least 1")
         if self.relocalise_candidates < 0:
