@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DatasetError
+from .files import atomic_path
 
 __all__ = ["write_ply", "read_ply"]
 
@@ -32,7 +33,7 @@ def write_ply(
     binary: bool = True,
     double: bool = False,
 ) -> None:
-    """Write a coloured point cloud.
+    """Write a coloured point cloud (atomically: see :func:`~.files.atomic_path`).
 
     Parameters
     ----------
@@ -78,7 +79,7 @@ def write_ply(
     if colors is not None:
         header += ["property uchar red", "property uchar green", "property uchar blue"]
     header.append("end_header")
-    with open(path, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:  # a kill never leaves half a file
         fh.write(("\n".join(header) + "\n").encode("ascii"))
         if binary:
             fh.write(data.tobytes())
