@@ -21,6 +21,7 @@ from eifslam.cli.main import main as cli_main
 from eifslam.errors import OutputError
 from eifslam.io import open_source, read_tum
 from eifslam.io.files import atomic_path, atomic_write
+from eifslam.io.image_header import MAX_IMAGE_PIXELS, header_size
 from eifslam.io.trajectory import TumAppender
 
 from hostile import Scene, assert_clean, png_claiming, poses_in, subprocess_env
@@ -42,6 +43,77 @@ def data(scene, tmp_path) -> Path:
 def cli(capsys, *argv: str) -> tuple[int, str]:
     rc = cli_main([str(a) for a in argv])
     return rc, capsys.readouterr().err
+
+
+# -- images over the memory budget --------------------------------------------------------
+
+def test_header_size_agrees_with_opencv(tmp_path):
+    img = np.random.default_rng(0).integers(0, 255, (37, 53, 3), np.uint8)
+    for ext in (".png", ".jpg", ".bmp", ".tif", ".ppm", ".webp"):
+        path = tmp_path / f"i{ext}"
+        assert cv2.imwrite(str(path), img if ext != ".pgm" else img[..., 0])
+        decoded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        assert header_size(path) == (decoded.shape[1], decoded.shape[0]), ext
+    (tmp_path / "claims.png").write_bytes(png_claiming(100_000, 90_000))
+    assert header_size(tmp_path / "claims.png") == (100_000, 90_000)
+    (tmp_path / "short.png").write_bytes(b"\x89PNG\r\n")
+    assert header_size(tmp_path / "short.png") is None
+
+
+def test_png_claiming_a_huge_size_is_skipped_not_decoded(scene, tmp_path, capsys):
+    d = scene.folder(tmp_path / "data", order=[0, 1, 2, 3])
+    (d / "images" / "000002.png").write_bytes(png_claiming(100_000, 100_000))
+    out = tmp_path / "out"
+    rc, err = cli(capsys, "run", d, "--out", out, "--no-html")
+    assert_clean(rc, err)
+    assert rc == 0 and "000002.png" in err and "megapixels" in err
+    assert json.loads((out / "report.json").read_text())["frames"] == 3
+
+
+def test_an_8000x8000_image_and_camera_are_refused(scene, tmp_path, capsys):
+    assert 8000 * 8000 > MAX_IMAGE_PIXELS
+    d = scene.folder(tmp_path / "data", order=[0, 1, 2])
+    assert cv2.imwrite(str(d / "images" / "000001.png"), np.zeros((8000, 8000), np.uint8))
+    rc, err = cli(capsys, "run", d, "--out", tmp_path / "o1", "--no-html")
+    assert_clean(rc, err)
+    assert "000001.png" in err and "8000x8000" in err
+    (d / "camera.yaml").write_text(scene.camera_yaml().replace("width: 320", "width: 8000")
+                                   .replace("height: 240", "height: 8000"))
+    rc, err = cli(capsys, "run", d, "--out", tmp_path / "o2", "--no-html")
+    assert rc == 1
+    assert_clean(rc, err, str(d))
+
+
+# -- video whose middle is corrupt ----------------------------------------------------------
+
+def test_video_with_a_corrupt_middle_keeps_every_decodable_frame(tmp_path):
+    path = tmp_path / "clip.mp4"
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10, (160, 120))
+    if not w.isOpened():
+        pytest.skip("no mp4v encoder in this OpenCV")
+    for k in range(40):
+        img = np.full((120, 160, 3), 5 * k, np.uint8)
+        cv2.putText(img, str(k), (40, 80), 0, 2, (255, 255, 255), 3)
+        w.write(img)
+    w.release()
+    raw = bytearray(path.read_bytes())
+    a = len(raw) // 2
+    raw[a:a + 2000] = np.random.default_rng(1).integers(0, 256, 2000, dtype=np.uint8).tobytes()
+    path.write_bytes(bytes(raw))
+    (tmp_path / "clip.yaml").write_text("fx: 150\nfy: 150\ncx: 80\ncy: 60\n")
+    # reference: OpenCV reading the file straight through, going on after a failed frame
+    cap = cv2.VideoCapture(str(path))
+    reference = [int(img.mean()) for ok, img in (cap.read() for _ in range(80)) if ok]
+    cap.release()
+    seq = open_source(path)
+    kept = []
+    for k in range(len(seq)):
+        try:
+            kept.append(int(seq.load(k).mean()))
+        except Exception as exc:  # an ImageError naming the file, nothing else
+            assert "clip.mp4" in str(exc) and type(exc).__name__ == "ImageError"
+    assert 20 < len(reference) < 40  # the corruption costs frames, but not all after it
+    assert kept == reference
 
 
 # -- atomic and incremental writing -----------------------------------------------------------
