@@ -84,6 +84,42 @@ def test_an_8000x8000_image_and_camera_are_refused(scene, tmp_path, capsys):
     assert_clean(rc, err, str(d))
 
 
+# -- camera YAML --------------------------------------------------------------------------
+
+def _billion_laughs() -> str:
+    lines = ['a0: &a0 ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
+    for k in range(1, 10):
+        lines.append(f"a{k}: &a{k} [" + ",".join([f"*a{k - 1}"] * 9) + "]")
+    return "\n".join(lines) + "\nfx: *a9\nfy: 1\ncx: 1\ncy: 1\n"
+
+
+@pytest.mark.parametrize("content", [
+    _billion_laughs(),
+    "fx: " + "[" * 5000 + "]" * 5000 + "\n",
+    "fx: 1\n" + "".join(f"k{k}: {k}\n" for k in range(120_000)),  # 1.5 MB
+    "fx: [" + ",".join(["1"] * 20_000) + "]\n",
+    "fx: 1" + "0" * 5000 + "\nfy: 1\ncx: 1\ncy: 1\nwidth: 320\nheight: 240\n",
+    "\x00\xff\xfe binary",
+])
+def test_hostile_camera_yaml_is_one_line(scene, tmp_path, capsys, content):
+    d = scene.folder(tmp_path / "data", order=[0, 1])
+    (d / "camera.yaml").write_bytes(content.encode("latin-1"))
+    t0 = time.perf_counter()
+    rc, err = cli(capsys, "run", d, "--out", tmp_path / "out")
+    assert rc == 1 and time.perf_counter() - t0 < 20  # generous: refused, not expanded
+    assert_clean(rc, err, "camera.yaml")
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs")
+def test_camera_file_that_is_a_fifo_does_not_hang(scene, tmp_path, capsys):
+    d = scene.folder(tmp_path / "data", order=[0, 1])
+    (d / "camera.yaml").unlink()
+    os.mkfifo(d / "camera.yaml")
+    rc, err = cli(capsys, "run", d, "--out", tmp_path / "out")
+    assert rc == 1
+    assert_clean(rc, err, "camera.yaml")
+
+
 # -- video whose middle is corrupt ----------------------------------------------------------
 
 def test_video_with_a_corrupt_middle_keeps_every_decodable_frame(tmp_path):
