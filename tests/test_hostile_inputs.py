@@ -120,6 +120,66 @@ def test_camera_file_that_is_a_fifo_does_not_hang(scene, tmp_path, capsys):
     assert_clean(rc, err, "camera.yaml")
 
 
+# -- ground truth is for scoring only ------------------------------------------------------
+
+BAD_GT = {
+    "folder": ("groundtruth.tum", "0.0 nan 0 0 0 0 0 1\n"),
+    "tum": ("groundtruth.txt", "this is not a trajectory\n"),
+    "euroc": ("data.csv", "#timestamp,x,y,z,qw,qx,qy,qz\n100000000000,nan,0,0,1,0,0,0\n"),
+    "kitti": ("poses.txt", "1 2 3\n"),
+}
+
+
+@pytest.mark.parametrize("layout", sorted(BAD_GT))
+def test_bad_ground_truth_skips_evaluation_and_keeps_every_estimate(scene, tmp_path, capsys, layout):
+    name, content = BAD_GT[layout]
+    sub = Scene.__new__(Scene)  # the first 4 images
+    sub.__dict__.update(scene.__dict__, images=scene.images[:4], times=scene.times[:4])
+    d = sub.folder(tmp_path / "d", gt=content) if layout == "folder" else getattr(sub, layout)(tmp_path / "d", content)
+    out = tmp_path / "out"
+    rc, err = cli(capsys, "run", d, "--out", out)
+    assert_clean(rc, err)
+    assert rc == 0 and "warning" in err and name in err
+    rep = json.loads((out / "report.json").read_text())
+    assert name in rep["evaluation_skipped"] and "ate_rmse" not in rep
+    assert poses_in(out / "trajectory.tum") == rep["frames_tracked"] >= 3
+    assert (out / "map.ply").stat().st_size > 0 and (out / "report.html").is_file()
+    assert not (out / "trajectory.partial.tum").exists()
+
+
+def test_good_ground_truth_is_scored(scene, tmp_path, capsys):
+    # the same run with a well-formed file: evaluation is not skipped (the test above
+    # would pass trivially if it always were)
+    d = scene.folder(tmp_path / "d", order=[0, 1, 2, 3])
+    sub_times = np.round(0.1 * np.arange(4), 3)
+    q = scene.tum_lines().splitlines()[:4]
+    (d / "groundtruth.tum").write_text("".join(f"{t:.3f} " + ln.split(" ", 1)[1] + "\n" for t, ln in zip(sub_times, q)))
+    rc, err = cli(capsys, "run", d, "--out", tmp_path / "out", "--no-html")
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert rc == 0 and "evaluation_skipped" not in rep and 0 < rep["ate_rmse"] < 0.05
+
+
+# -- arguments only wrong once the run ends ---------------------------------------------
+
+def test_scale_naming_a_state_not_in_the_map_warns_and_writes_unscaled(data, tmp_path, capsys):
+    out = tmp_path / "out"
+    rc, err = cli(capsys, "run", data, "--out", out, "--no-html", "--scale-distance", "pose", "0", "pose", "999", "2")
+    assert_clean(rc, err)
+    assert rc == 0 and "warning" in err and "999" in err
+    rep = json.loads((out / "report.json").read_text())
+    assert "999" in rep["scale_skipped"]
+    assert poses_in(out / "trajectory.tum") == rep["frames_tracked"] >= 3
+
+
+def test_scale_naming_existing_states_is_applied(data, tmp_path, capsys):
+    # the reference: the written trajectory itself, read back
+    out = tmp_path / "out"
+    rc, err = cli(capsys, "run", data, "--out", out, "--no-html", "--scale-distance", "pose", "0", "pose", "3", "2.5")
+    assert rc == 0 and "scale_skipped" not in json.loads((out / "report.json").read_text())
+    traj = read_tum(out / "trajectory.tum")
+    assert 2.499 < np.linalg.norm(traj.positions[3] - traj.positions[0]) < 2.501
+
+
 # -- video whose middle is corrupt ----------------------------------------------------------
 
 def test_video_with_a_corrupt_middle_keeps_every_decodable_frame(tmp_path):
