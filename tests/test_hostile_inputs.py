@@ -45,6 +45,97 @@ def cli(capsys, *argv: str) -> tuple[int, str]:
     return rc, capsys.readouterr().err
 
 
+# -- the output folder, checked before any work ----------------------------------------
+
+def test_output_folder_that_is_a_file(data, tmp_path, capsys):
+    out = tmp_path / "out.txt"
+    out.write_text("keep me")
+    rc, err = cli(capsys, "run", data, "--out", out, "--no-html")
+    assert rc == 1 and out.read_text() == "keep me"
+    assert_clean(rc, err, str(out))
+    assert "is a file" in err
+
+
+def test_output_folder_whose_parent_is_a_file(data, tmp_path, capsys):
+    (tmp_path / "f").write_text("")
+    out = tmp_path / "f" / "out"
+    rc, err = cli(capsys, "run", data, "--out", out, "--no-html")
+    assert rc == 1
+    assert_clean(rc, err, str(out))
+
+
+@pytest.mark.skipif(IS_ROOT or os.name != "posix", reason="root writes anywhere")
+def test_output_folder_read_only(data, tmp_path, capsys):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    try:
+        for out in (ro, ro / "sub"):
+            rc, err = cli(capsys, "run", data, "--out", out, "--no-html")
+            assert rc == 1
+            assert_clean(rc, err, str(out))
+    finally:
+        ro.chmod(0o700)
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="no /proc")
+def test_output_folder_on_a_pseudo_file_system(data, capsys):
+    for out in ("/proc/eifslam-out", "/proc/self/eifslam-out", "/sys/eifslam-out"):
+        rc, err = cli(capsys, "run", data, "--out", out, "--no-html")
+        assert rc == 1
+        assert_clean(rc, err, out)
+
+
+def test_output_path_longer_than_the_os_allows(data, tmp_path, capsys):
+    for out in (tmp_path / ("x" * 300), tmp_path.joinpath(*["y" * 200] * 30)):
+        rc, err = cli(capsys, "run", data, "--out", out, "--no-html")
+        assert rc == 1
+        assert_clean(rc, err, str(out))
+
+
+def test_demo_and_render_check_their_output_folder_first(tmp_path, capsys):
+    (tmp_path / "f").write_text("")
+    for cmd in (["demo", "--frames", "3"], ["render", "--frames", "3"]):
+        rc, err = cli(capsys, *cmd, "--out", tmp_path / "f")
+        assert rc == 1
+        assert_clean(rc, err, str(tmp_path / "f"))
+
+
+# -- arguments ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("scale", [
+    ("pose", "0", "sphere", "3", "1.0"),
+    ("pose", "zero", "pose", "3", "1.0"),
+    ("pose", "0", "pose", "1.5", "1.0"),
+    ("pose", "0", "pose", "3", "-2"),
+    ("pose", "0", "pose", "3", "0"),
+    ("pose", "0", "pose", "3", "nan"),
+    ("pose", "0", "pose", "3", "inf"),
+    ("pose", "0", "pose", "0", "1.0"),
+])
+def test_bad_scale_distance_is_refused_before_any_work(data, tmp_path, capsys, scale):
+    out = tmp_path / "out"
+    rc, err = cli(capsys, "run", data, "--out", out, "--scale-distance", *scale)
+    assert rc == 1 and not out.exists()
+    assert_clean(rc, err, "--scale-distance")
+
+
+@pytest.mark.parametrize("argv, names", [
+    (["run", "DATA", "--max-frames", "0"], "--max-frames"),
+    (["run", "DATA", "--map-fraction", "nan"], "--map-fraction"),
+    (["render", "--width", "100000"], "100000"),
+    (["render", "--noise", "nan"], "--noise"),
+    (["render", "--frames", "100000000"], "--frames"),
+    (["demo", "--frames", "1"], "--frames"),
+    (["demo", "--blur", "-1"], "--blur"),
+])
+def test_bad_numbers_are_one_line(data, tmp_path, capsys, argv, names):
+    out = tmp_path / "out"
+    rc, err = cli(capsys, *[data if a == "DATA" else a for a in argv], "--out", out)
+    assert rc == 1 and not out.exists()
+    assert_clean(rc, err, names)
+
+
 # -- images over the memory budget --------------------------------------------------------
 
 def test_header_size_agrees_with_opencv(tmp_path):
@@ -212,6 +303,23 @@ def test_video_with_a_corrupt_middle_keeps_every_decodable_frame(tmp_path):
     assert kept == reference
 
 
+# -- eval -------------------------------------------------------------------------------------
+
+def test_eval_json_at_a_folder_and_unknown_plot_format_before_any_work(tmp_path, capsys):
+    missing = tmp_path / "missing.tum"  # never read: the checks come first
+    rc, err = cli(capsys, "eval", missing, missing, "--json", tmp_path)
+    assert rc == 1 and "--json" in err
+    assert_clean(rc, err, str(tmp_path))
+    for plot in ("plot.xyz", "plot"):
+        rc, err = cli(capsys, "eval", missing, missing, "--plot", tmp_path / plot)
+        assert rc == 1 and "format" in err
+        assert_clean(rc, err, plot)
+    rc, err = cli(capsys, "eval", missing, missing, "--json", tmp_path / "no" / "r.json")
+    assert_clean(rc, err, "r.json")
+    rc, err = cli(capsys, "eval", missing, missing, "--max-diff", "nan")
+    assert_clean(rc, err, "--max-diff")
+
+
 # -- atomic and incremental writing -----------------------------------------------------------
 
 def test_atomic_write_leaves_the_old_file_when_interrupted(tmp_path):
@@ -238,3 +346,59 @@ def test_tum_appender_skips_what_the_format_cannot_hold(tmp_path):
     assert list(traj.timestamps) == [0.0, 1.0] and np.allclose(traj.quats_wxyz[1], q)
 
 
+# -- interruptions: signals in a subprocess ---------------------------------------------------
+
+@pytest.fixture(scope="module")
+def long_run(scene, tmp_path_factory) -> Path:
+    """80 images going back and forth over the 8 rendered ones (a few seconds of tracking)."""
+    order = (list(range(8)) + list(range(6, 0, -1))) * 6
+    return scene.folder(tmp_path_factory.mktemp("long") / "data", order=order[:80])
+
+
+def _start(data: Path, out: Path) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "eifslam.cli.main", "run", str(data), "--out", str(out), "--no-html"],
+                            env=subprocess_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for_poses(proc: subprocess.Popen, path: Path, n: int, timeout: float = 60.0) -> int:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        k = poses_in(path)
+        if k >= n:
+            return k
+        if proc.poll() is not None:
+            pytest.fail(f"the run ended before {n} poses: {proc.communicate()[1][-2000:]}")
+        time.sleep(0.02)
+    proc.kill()
+    pytest.fail("no poses written in time")
+
+
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGHUP"])
+def test_sigterm_and_sighup_write_what_was_estimated(long_run, tmp_path, signame):
+    if not hasattr(signal, signame):
+        pytest.skip(f"no {signame} here")
+    out = tmp_path / "out"
+    proc = _start(long_run, out)
+    seen = _wait_for_poses(proc, out / "trajectory.partial.tum", 4)
+    proc.send_signal(getattr(signal, signame))
+    _, err = proc.communicate(timeout=120)
+    assert_clean(proc.returncode, err)
+    assert proc.returncode == 0 and "interrupted" in err
+    rep = json.loads((out / "report.json").read_text())
+    assert signame in rep["stopped"] and rep["frames"] < 80
+    assert rep["frames_tracked"] >= seen and poses_in(out / "trajectory.tum") == rep["frames_tracked"]
+    assert (out / "map.ply").is_file() and not (out / "trajectory.partial.tum").exists()
+
+
+def test_sigkill_keeps_the_poses_tracked_before(long_run, tmp_path):
+    out = tmp_path / "out"
+    proc = _start(long_run, out)
+    partial = out / "trajectory.partial.tum"
+    _wait_for_poses(proc, partial, 4)
+    before = read_tum(partial)
+    proc.kill()
+    proc.communicate(timeout=60)
+    after = read_tum(partial)  # parses: no half line
+    assert len(after) >= len(before) >= 4
+    np.testing.assert_array_equal(after.timestamps[: len(before)], before.timestamps)
+    assert not (out / "report.json").exists()
