@@ -101,6 +101,29 @@ def test_demo_and_render_check_their_output_folder_first(tmp_path, capsys):
         assert_clean(rc, err, str(tmp_path / "f"))
 
 
+def test_an_output_name_taken_by_a_folder_costs_only_that_file(data, tmp_path, capsys):
+    out = tmp_path / "out"
+    (out / "map.ply").mkdir(parents=True)
+    rc, err = cli(capsys, "run", data, "--out", out, "--no-html")
+    assert rc == 1
+    assert_clean(rc, err, "map.ply")
+    rep = json.loads((out / "report.json").read_text())
+    assert "map.ply" in rep["write_errors"][0]
+    assert poses_in(out / "trajectory.tum") == rep["frames_tracked"] >= 3
+    assert poses_in(out / "trajectory.partial.tum") >= 3  # kept: the run did not end cleanly
+
+
+def test_no_decodable_image_is_one_line_with_outputs(scene, tmp_path, capsys):
+    d = scene.folder(tmp_path / "data", order=[0, 1, 2])
+    for p in (d / "images").iterdir():
+        p.write_bytes(b"\x89PNG\r\n\x1a\n broken")
+    out = tmp_path / "out"
+    rc, err = cli(capsys, "run", d, "--out", out, "--no-html")
+    assert rc == 1 and "no frame" in err
+    assert_clean(rc, err, str(d))
+    assert json.loads((out / "report.json").read_text())["frames"] == 0
+
+
 # -- arguments ---------------------------------------------------------------------------
 
 @pytest.mark.parametrize("scale", [

@@ -6,7 +6,7 @@ import argparse
 import math
 from pathlib import Path
 
-from ..errors import ConfigError
+from ..errors import ConfigError, DatasetError
 from ..frontend.config import DETECTORS
 from ..system.config import Mode, SlamConfig
 
@@ -115,4 +115,7 @@ def main(args: argparse.Namespace) -> int:
     seq = open_source(args.source, camera=args.camera)
     rep = run_to_folder(seq, config, args.out, max_frames=args.max_frames,
                         scale=scale, html=not args.no_html)
-    return 0 if rep.get("frames_tracked", 0) > 0 else 1
+    if rep.get("frames_tracked", 0) == 0:
+        raise DatasetError(f"{args.source}: no frame could be tracked ({rep.get('frames', 0)} read; "
+                           f"the empty outputs are in {args.out})")
+    return 0

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import EifslamError
+from ..errors import EifslamError, OutputError
 from ..io import Trajectory, write_ply, write_tum
 from ..io.files import atomic_path, atomic_write, ensure_output_dir
 from ..io.trajectory import TumAppender
@@ -93,17 +93,39 @@ def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
 
 def write_outputs(slam: Slam, out_dir: str | Path, total_s: float, ground_truth: Trajectory | None = None,
                   extra: dict[str, Any] | None = None, html: bool = True) -> dict[str, Any]:
-    """Write every output file of a run into ``out_dir``; return the summary dict."""
+    """Write every output file of a run into ``out_dir``; return the summary dict.
+
+    Each file is written atomically and independently: one that cannot be written (a
+    full disk, a folder of the same name) does not stop the others; ``report.json`` lists
+    it under ``write_errors`` and :class:`OutputError` is raised once all were tried.
+    """
     out = ensure_output_dir(out_dir)
+    errors: list[str] = []
+
+    def save(write, *args) -> None:
+        try:
+            write(*args)
+        except EifslamError as exc:
+            errors.append(str(exc))
+            print(f"eifslam: warning: {exc}", file=sys.stderr)
+
+    def save_npz(path: Path) -> None:
+        with atomic_path(path) as tmp:
+            sp.save_npz(tmp, slam.filter.information_matrix().tocsr())
+
     t, P, Q = slam.trajectory()  # the estimate first: it is what a user cannot recompute
-    write_tum(out / "trajectory.tum", t, P, Q)
+    save(write_tum, out / "trajectory.tum", t, P, Q)
     _, X, cols = slam.map()
-    write_ply(out / "map.ply", X, cols)
-    atomic_write(out / "frames.json", json.dumps({"frames": frame_rows(slam)}, indent=1))
-    with atomic_path(out / "information.npz") as tmp:
-        sp.save_npz(tmp, slam.filter.information_matrix().tocsr())
+    save(write_ply, out / "map.ply", X, cols)
+    save(atomic_write, out / "frames.json", json.dumps({"frames": frame_rows(slam)}, indent=1))
+    save(save_npz, out / "information.npz")
     rep = summary(slam, total_s, ground_truth, extra)
-    atomic_write(out / "report.json", json.dumps(rep, indent=2, default=float))
+    if errors:
+        rep["write_errors"] = list(errors)
+    save(atomic_write, out / "report.json", json.dumps(rep, indent=2, default=float))
+    if errors:
+        more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+        raise OutputError(errors[0] + more)
     if html:
         try:
             from .report import write_report
