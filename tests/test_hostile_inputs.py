@@ -343,6 +343,16 @@ def test_eval_json_at_a_folder_and_unknown_plot_format_before_any_work(tmp_path,
     assert_clean(rc, err, "--max-diff")
 
 
+@pytest.mark.parametrize("estimate", ["", "5 0 0 0 0 0 0 1\n", "0 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n",
+                                      "0 nan 0 0 0 0 0 1\n", "0 0 0 0 0 0 0 0\n", "1 0 0 0 0 0 0 1\n0 0 0 0 0 0 0 1\n"])
+def test_eval_of_an_unusable_estimate_names_it(tmp_path, capsys, estimate):
+    (tmp_path / "gt.tum").write_text("0 0 0 0 0 0 0 1\n1 1 0 0 0 0 0 1\n2 1 1 0 0 0 0 1\n3 0 1 1 0 0 0 1\n")
+    (tmp_path / "est.tum").write_text(estimate)
+    rc, err = cli(capsys, "eval", tmp_path / "est.tum", tmp_path / "gt.tum")
+    assert rc == 1
+    assert_clean(rc, err, "est.tum")
+
+
 # -- atomic and incremental writing -----------------------------------------------------------
 
 def test_atomic_write_leaves_the_old_file_when_interrupted(tmp_path):

@@ -8,7 +8,7 @@ import math
 import os
 from pathlib import Path
 
-from ..errors import ConfigError, DatasetError, OutputError
+from ..errors import ConfigError, DatasetError, EifslamError, OutputError
 from ..io.files import atomic_path, atomic_write
 from ..io.trajectory import Trajectory, read_tum
 
@@ -73,7 +73,10 @@ def run(args: argparse.Namespace) -> int:
     check_args(args)
     est = read_tum(args.estimate)
     gt = _ground_truth(Path(args.ground_truth))
-    result = evaluate(est, gt, max_diff=args.max_diff)
+    try:
+        result = evaluate(est, gt, max_diff=args.max_diff)
+    except EifslamError as exc:  # name the files the problem is about
+        raise type(exc)(f"{args.estimate} against {args.ground_truth}: {exc}") from None
     print(result.summary())
     if args.json:
         atomic_write(args.json, json.dumps(result.to_dict(arrays=args.json_arrays), indent=2) + "\n")
