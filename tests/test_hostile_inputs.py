@@ -353,6 +353,26 @@ def test_eval_of_an_unusable_estimate_names_it(tmp_path, capsys, estimate):
     assert_clean(rc, err, "est.tum")
 
 
+# -- the Python API's readers: a DatasetError naming the file, nothing else -------------------
+
+@pytest.mark.parametrize("body", [
+    b"ply\nformat ascii 1.0\nelement vertex many\nend_header\n",
+    b"ply\nformat ascii 1.0\nelement vertex\nend_header\n",
+    b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 x\n",
+    b"ply\nformat binary_little_endian 1.0\nelement vertex -5\nproperty float x\nproperty float y\nproperty float z\nend_header\n",
+    b"ply\nformat binary_little_endian 1.0\nelement vertex 99999999999\nproperty float x\nproperty float y\nproperty float z\nend_header\n",
+    b"ply\nend_header",
+    b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n\xff\xfe\n",
+])
+def test_malformed_ply_is_a_dataset_error(tmp_path, body):
+    from eifslam.errors import DatasetError
+    from eifslam.io import read_ply
+
+    (tmp_path / "m.ply").write_bytes(body)
+    with pytest.raises(DatasetError, match="m.ply"):
+        read_ply(tmp_path / "m.ply")
+
+
 # -- atomic and incremental writing -----------------------------------------------------------
 
 def test_atomic_write_leaves_the_old_file_when_interrupted(tmp_path):

@@ -108,6 +108,15 @@ def read_ply(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.uint8] |
         raw = path.read_bytes()
     except FileNotFoundError:
         raise DatasetError(f"{path}: PLY file not found") from None
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read PLY file ({exc.strerror or exc})") from None
+    try:
+        return _parse_ply(raw, path)
+    except (ValueError, IndexError, UnicodeDecodeError) as exc:  # a malformed header or body
+        raise DatasetError(f"{path}: malformed PLY file ({exc})") from None
+
+
+def _parse_ply(raw: bytes, path: Path) -> tuple[NDArray[np.float64], NDArray[np.uint8] | None]:
     end = raw.find(b"end_header")
     if not raw.startswith(b"ply") or end < 0:
         raise DatasetError(f"{path}: not a PLY file (no 'ply' magic or 'end_header')")
@@ -124,6 +133,8 @@ def read_ply(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.uint8] |
             element = tok[1]
             if element == "vertex":
                 n_vertex = int(tok[2])
+                if n_vertex < 0:
+                    raise DatasetError(f"{path}: negative vertex count {n_vertex}")
             elif int(tok[2]) > 0:
                 raise DatasetError(f"{path}: only vertex elements are supported, found {tok[1]}")
         elif tok[0] == "property" and element == "vertex":
