@@ -373,6 +373,62 @@ def test_malformed_ply_is_a_dataset_error(tmp_path, body):
         read_ply(tmp_path / "m.ply")
 
 
+_SEEDS = {
+    "t.tum": "0 0 0 0 0 0 0 1\n1 1 0 0 0 0 0 1\n",
+    "times.txt": "0.0\n0.1\n",
+    "rgb.txt": "# x\n0.0 rgb/a.png\n",
+    "data.csv": "#t,f\n100,a.png\n",
+    "poses.txt": "1 0 0 0 0 1 0 0 0 0 1 0\n",
+    "camera.yaml": "model: pinhole\nwidth: 10\nheight: 10\nfx: 5\nfy: 5\ncx: 5\ncy: 5\ndistortion: [0,0,0,0,0]\n",
+    "cv.yaml": "%YAML:1.0\nCamera.fx: 5\nCamera.fy: 5\nCamera.cx: 1\nCamera.cy: 1\nCamera.width: 10\nCamera.height: 10\n",
+    "calib.txt": "P0: 5 0 5 0 0 5 5 0 0 0 1 0\n",
+    "sensor.yaml": ("camera_model: pinhole\nintrinsics: [5,5,5,5]\nresolution: [10,10]\n"
+                    "distortion_coefficients: [0,0,0,0]\nT_BS:\n  data: [1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1]\n"),
+    "x.camera": "5 0 5\n0 5 5\n0 0 1\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n0 0 0\n10 10\n",
+}
+_TOKENS = ["nan", "inf", "-1", "0", "1e400", "1" * 50, "[", "]", "{", "}", ":", "&a", "*a", "!!python/object:os.system",
+           "\x00", "\xff", ",", " ", "\n", "-", "e", "'", '"', "!!binary", "~", "null", "true", "[1,2]", "{a: 1}", "? ", "|"]
+
+
+@pytest.mark.parametrize("name", sorted(_SEEDS))
+def test_mutated_text_files_raise_only_eifslam_errors(tmp_path, name):
+    """A fixed-seed mutation of each text format eifslam reads: every outcome is a value
+    or an EifslamError (which the CLI prints in one line), never another exception."""
+    from eifslam.errors import EifslamError
+    from eifslam.io import load_camera
+    from eifslam.io.cameras import read_euroc_sensor
+    from eifslam.io.euroc import read_euroc_csv
+    from eifslam.io.folder import read_times
+    from eifslam.io.kitti import read_kitti_poses
+    from eifslam.io.tum_rgbd import read_file_list
+
+    read = {"t.tum": read_tum, "times.txt": read_times, "rgb.txt": read_file_list,
+            "data.csv": lambda p: read_euroc_csv(p, 2), "poses.txt": read_kitti_poses,
+            "camera.yaml": load_camera, "cv.yaml": load_camera, "x.camera": load_camera,
+            "calib.txt": lambda p: load_camera(p, image_size=(10, 10)), "sensor.yaml": read_euroc_sensor}[name]
+    rng = np.random.default_rng(sorted(_SEEDS).index(name))
+    path = tmp_path / name
+    errors = 0
+    for _ in range(150):
+        text = list(_SEEDS[name])
+        for _ in range(rng.integers(1, 6)):
+            k = int(rng.integers(0, len(text) + 1))
+            op = rng.integers(0, 3)
+            if op == 0 and text:
+                del text[min(k, len(text) - 1)]
+            elif op == 1:
+                text.insert(k, _TOKENS[rng.integers(len(_TOKENS))])
+            else:
+                text.insert(k, chr(rng.integers(32, 127)))
+        path.write_bytes("".join(text).encode("utf-8", "surrogateescape"))
+        try:
+            read(path)
+        except EifslamError as exc:
+            errors += 1
+            assert name in str(exc) and "\n" not in str(exc)
+    assert errors > 10  # the mutations do break the files
+
+
 # -- atomic and incremental writing -----------------------------------------------------------
 
 def test_atomic_write_leaves_the_old_file_when_interrupted(tmp_path):
