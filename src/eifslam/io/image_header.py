@@ -24,6 +24,10 @@ MAX_IMAGE_PIXELS = 40_000_000
 MAX_IMAGE_SIDE = 20_000
 
 
+#: bytes of a JPEG searched for its frame header (it follows the EXIF/ICC segments)
+_JPEG_SCAN_BYTES = 4_000_000
+
+
 def _png(h: bytes) -> tuple[int, int] | None:
     if h[:8] == b"\x89PNG\r\n\x1a\n" and h[12:16] == b"IHDR":
         return struct.unpack(">II", h[16:24])
@@ -69,8 +73,10 @@ def _webp(h: bytes) -> tuple[int, int] | None:
 def _jpeg(fh) -> tuple[int, int] | None:
     fh.seek(2)
     for _ in range(10_000):  # markers before the frame header; bounded
+        if fh.tell() > _JPEG_SCAN_BYTES:  # no frame header near the start: let OpenCV say
+            return None
         b = fh.read(1)
-        while b and b != b"\xff":
+        while b and b != b"\xff" and fh.tell() <= _JPEG_SCAN_BYTES:
             b = fh.read(1)
         while b == b"\xff":
             b = fh.read(1)
