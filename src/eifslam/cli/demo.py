@@ -31,11 +31,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
 def main(args: argparse.Namespace) -> int:
     from ..evaluation.box_ratio import add_box_ratio
     from ..evaluation.outputs import run_to_folder
-    from ..io import open_source
-    from ..sim.scene import make_scene, render_scene
-
     from ..errors import ConfigError
+    from ..io import open_source
     from ..io.files import ensure_output_dir
+    from ..sim.scene import make_scene, render_scene
 
     if args.frames < 3:
         raise ConfigError(f"--frames must be >= 3, got {args.frames}")

@@ -61,8 +61,8 @@ def _interrupt(signum: int, frame) -> None:
 
 @contextlib.contextmanager
 def _signals_as_interrupt() -> Iterator[None]:
-    """Turn SIGTERM and SIGHUP into :class:`KeyboardInterrupt` while inside (main thread
-    only: Python delivers signals there); the previous handlers are put back after."""
+    """Handle SIGTERM and SIGHUP by :func:`_interrupt` while inside (main thread only:
+    Python delivers signals there); the previous handlers are put back after."""
     names = ("SIGTERM", "SIGHUP")
     sigs = [getattr(signal, n) for n in names if hasattr(signal, n)]
     if threading.current_thread() is not threading.main_thread():

@@ -46,11 +46,10 @@ def run(args: argparse.Namespace) -> int:
     """Render the scene as the arguments ask; returns the exit code."""
     from tqdm import tqdm
 
-    from ..sim.scene import make_scene
-    from ..sim.scene.render import render_scene
-
     from ..io.files import ensure_output_dir
     from ..io.image_header import check_image_size
+    from ..sim.scene import make_scene
+    from ..sim.scene.render import render_scene
 
     if not (math.isfinite(args.noise) and math.isfinite(args.blur) and args.noise >= 0 and args.blur >= 0):
         raise ConfigError(f"--noise and --blur must be finite and >= 0, got {args.noise} and {args.blur}")
