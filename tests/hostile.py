@@ -103,6 +103,17 @@ class Scene:
         (root / "mav0" / "state_groundtruth_estimate0" / "data.csv").write_text(gt)
         return root
 
+    def video(self, root: Path, gt: str) -> Path:
+        """``root/clip.avi`` (MJPG: every frame a key frame) with ``clip.yaml`` and ``clip.tum``."""
+        root.mkdir(parents=True)
+        w = cv2.VideoWriter(str(root / "clip.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, (W, H))
+        for im in self.images:
+            w.write(im)
+        w.release()
+        (root / "clip.yaml").write_text(self.camera_yaml())
+        (root / "clip.tum").write_text(gt)
+        return root / "clip.avi"
+
     def kitti(self, root: Path, poses: str) -> Path:
         (root / "image_0").mkdir(parents=True)
         for k, im in enumerate(self.images):

@@ -241,6 +241,7 @@ BAD_GT = {
     "tum": ("groundtruth.txt", "this is not a trajectory\n"),
     "euroc": ("data.csv", "#timestamp,x,y,z,qw,qx,qy,qz\n100000000000,nan,0,0,1,0,0,0\n"),
     "kitti": ("poses.txt", "1 2 3\n"),
+    "video": ("clip.tum", "0 0 0 0 0 0 0 0\n"),
 }
 
 
