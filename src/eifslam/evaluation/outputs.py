@@ -154,8 +154,10 @@ def scoring_ground_truth(seq) -> tuple[Trajectory | None, str | None]:
         return None, None
     try:
         gt = seq.ground_truth()
-    except (EifslamError, OSError, ValueError) as exc:
+    except EifslamError as exc:
         return None, f"ground truth not usable: {exc}"
+    except Exception as exc:  # noqa: BLE001 - scoring must never cost the run's outputs
+        return None, f"ground truth not usable: {type(exc).__name__}: {exc}"
     if gt is not None and len(gt) == 0:
         return None, "ground truth has no pose at the frame times"
     return gt, None
