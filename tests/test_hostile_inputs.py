@@ -483,7 +483,7 @@ def _wait_for_poses(proc: subprocess.Popen, path: Path, n: int, timeout: float =
     pytest.fail("no poses written in time")
 
 
-@pytest.mark.parametrize("signame", ["SIGTERM", "SIGHUP"])
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGHUP", "SIGINT"])
 def test_sigterm_and_sighup_write_what_was_estimated(long_run, tmp_path, signame):
     if not hasattr(signal, signame):
         pytest.skip(f"no {signame} here")

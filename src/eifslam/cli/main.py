@@ -5,9 +5,9 @@ Each module there defines ``add_parser(subparsers) -> argparse.ArgumentParser`` 
 parser's default. Known errors (:class:`eifslam.errors.EifslamError`) are printed as one
 line and give exit code 1.
 
-SIGTERM and SIGHUP are handled as Ctrl-C is: a run stops its loop (after the frame being
+Ctrl-C, SIGTERM and SIGHUP are handled alike: a run stops its loop (after the frame being
 tracked, :func:`eifslam.system.runner.request_stop`) and writes what it estimated; outside
-a run loop, or at a second signal, they raise :class:`KeyboardInterrupt` at once.
+a run, or at a second signal, they raise :class:`KeyboardInterrupt` at once.
 """
 
 from __future__ import annotations
@@ -51,19 +51,22 @@ def _one_line(text: str) -> str:
 
 
 def _interrupt(signum: int, frame) -> None:
-    """SIGTERM/SIGHUP: a running loop stops after its current frame and the outputs are
-    written; otherwise (or at a second signal) interrupt at once, as Ctrl-C does."""
+    """Ctrl-C, SIGTERM, SIGHUP: a run in progress stops after the frame being tracked and
+    writes its outputs; otherwise (or at a second signal) interrupt at once."""
     name = signal.Signals(signum).name
-    runner = sys.modules.get("eifslam.system.runner")  # not imported: no loop is running
+    runner = sys.modules.get("eifslam.system.runner")  # not imported: no run in progress
     if runner is None or not runner.request_stop(name):
         raise KeyboardInterrupt(name)
+    print(f"\neifslam: {name}: stopping after this frame and writing the outputs "
+          "(again to abort)", file=sys.stderr)
 
 
 @contextlib.contextmanager
 def _signals_as_interrupt() -> Iterator[None]:
-    """Handle SIGTERM and SIGHUP by :func:`_interrupt` while inside (main thread only:
-    Python delivers signals there); the previous handlers are put back after."""
-    names = ("SIGTERM", "SIGHUP")
+    """Handle Ctrl-C (SIGINT), SIGTERM and SIGHUP by :func:`_interrupt` while inside
+    (main thread only: Python delivers signals there); the previous handlers are put
+    back after."""
+    names = ("SIGINT", "SIGTERM", "SIGHUP")
     sigs = [getattr(signal, n) for n in names if hasattr(signal, n)]
     if threading.current_thread() is not threading.main_thread():
         yield
