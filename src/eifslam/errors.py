@@ -26,3 +26,7 @@ class ConfigError(EifslamError):
 
 class EstimatorError(EifslamError):
     """The estimator was asked something it cannot answer (unknown state, singular system)."""
+
+
+class OutputError(EifslamError):
+    """An output folder or file cannot be created or written."""

@@ -4,6 +4,7 @@ run SLAM on it and report the estimated width:length ratio of the 0.80:1 box."""
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from ..system.config import SlamConfig
@@ -30,15 +31,22 @@ def add_parser(sub) -> argparse.ArgumentParser:
 def main(args: argparse.Namespace) -> int:
     from ..evaluation.box_ratio import add_box_ratio
     from ..evaluation.outputs import run_to_folder
+    from ..errors import ConfigError
     from ..io import open_source
+    from ..io.files import ensure_output_dir
     from ..sim.scene import make_scene, render_scene
 
+    if args.frames < 3:
+        raise ConfigError(f"--frames must be >= 3, got {args.frames}")
+    if not (math.isfinite(args.noise) and math.isfinite(args.blur) and args.noise >= 0 and args.blur >= 0):
+        raise ConfigError(f"--noise and --blur must be finite and >= 0, got {args.noise} and {args.blur}")
+    config = make_config(args, SlamConfig().replace(frontend={"max_features": DEMO_MAX_FEATURES}))
+    ensure_output_dir(args.out)
     scene = make_scene(n_frames=args.frames)
     data = args.out / "scene"
     print(f"eifslam: rendering the built-in scene ({args.frames} images) into {data}", file=sys.stderr)
     render_scene(scene, data, noise_sigma=args.noise, blur_sigma=args.blur)
     seq = open_source(data)
-    config = make_config(args, SlamConfig().replace(frontend={"max_features": DEMO_MAX_FEATURES}))
     rep = run_to_folder(seq, config, args.out, max_frames=args.max_frames, html=not args.no_html)
     if rep.get("frames_tracked", 0) >= 3:
         add_box_ratio(rep, args.out, scene)

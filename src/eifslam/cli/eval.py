@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 from pathlib import Path
 
-from ..errors import DatasetError
+from ..errors import ConfigError, DatasetError, EifslamError, OutputError
+from ..io.files import atomic_path, atomic_write
 from ..io.trajectory import Trajectory, read_tum
 
 
@@ -22,16 +25,61 @@ def _ground_truth(path: Path) -> Trajectory:
     return gt
 
 
+def _check_output_file(path: str, option: str) -> None:
+    """Refuse, before any work, an output file that cannot be written: a folder, a
+    missing or non-writable parent folder."""
+    p = Path(path)
+    if p.is_dir():
+        raise OutputError(f"{p}: {option} names a folder; give a file name")
+    parent = p.parent
+    if not parent.is_dir():
+        raise OutputError(f"{p}: {option}: folder {parent} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise OutputError(f"{p}: {option}: folder {parent} is not writable")
+
+
+def _plot_formats() -> set[str]:
+    """File name endings matplotlib can save (``png``, ``pdf``, ``svg``, ...)."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    return set(FigureCanvasBase.get_supported_filetypes())
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """Every check that needs no file read: output files and ``--max-diff``.
+
+    Raises
+    ------
+    EifslamError
+        One line naming the file or option.
+    """
+    if not (math.isfinite(args.max_diff) and args.max_diff > 0):
+        raise ConfigError(f"--max-diff must be positive and finite, got {args.max_diff}")
+    if args.json:
+        _check_output_file(args.json, "--json")
+    if args.plot:
+        _check_output_file(args.plot, "--plot")
+        ext = Path(args.plot).suffix.lower().lstrip(".")
+        formats = _plot_formats()
+        if ext not in formats:
+            raise OutputError(f"{args.plot}: --plot: unknown image format {ext or '(no extension)'!r} "
+                              f"(use one of {', '.join(sorted(formats))})")
+
+
 def run(args: argparse.Namespace) -> int:
     """Evaluate, print, and optionally write JSON and a plot."""
     from ..evaluation.metrics import evaluate
 
+    check_args(args)
     est = read_tum(args.estimate)
     gt = _ground_truth(Path(args.ground_truth))
-    result = evaluate(est, gt, max_diff=args.max_diff)
+    try:
+        result = evaluate(est, gt, max_diff=args.max_diff)
+    except EifslamError as exc:  # name the files the problem is about
+        raise type(exc)(f"{args.estimate} against {args.ground_truth}: {exc}") from None
     print(result.summary())
     if args.json:
-        Path(args.json).write_text(json.dumps(result.to_dict(arrays=args.json_arrays), indent=2) + "\n")
+        atomic_write(args.json, json.dumps(result.to_dict(arrays=args.json_arrays), indent=2) + "\n")
     if args.plot:
         import matplotlib
 
@@ -44,7 +92,8 @@ def run(args: argparse.Namespace) -> int:
         try:
             plot_evaluation(ax, result)
             fig.tight_layout()
-            fig.savefig(args.plot, dpi=120)
+            with atomic_path(args.plot) as tmp:
+                fig.savefig(tmp, dpi=120)
         except OSError as exc:
             raise DatasetError(f"{args.plot}: cannot save plot ({exc})") from None
         finally:

@@ -8,11 +8,15 @@ Example::
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
-from ..errors import ConfigError
+from ..errors import ConfigError, EifslamError
 
 __all__ = ["add_parser", "run"]
+
+#: most frames ``render`` writes (one loop round the table; 54 in the paper)
+MAX_FRAMES = 10_000
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentParser:
@@ -42,11 +46,22 @@ def run(args: argparse.Namespace) -> int:
     """Render the scene as the arguments ask; returns the exit code."""
     from tqdm import tqdm
 
+    from ..io.files import ensure_output_dir
+    from ..io.image_header import check_image_size
     from ..sim.scene import make_scene
     from ..sim.scene.render import render_scene
 
-    if args.noise < 0 or args.blur < 0:
-        raise ConfigError("--noise and --blur must be >= 0")
+    if not (math.isfinite(args.noise) and math.isfinite(args.blur) and args.noise >= 0 and args.blur >= 0):
+        raise ConfigError(f"--noise and --blur must be finite and >= 0, got {args.noise} and {args.blur}")
+    if not math.isfinite(args.hfov):
+        raise ConfigError(f"--hfov must be finite, got {args.hfov}")
+    if not 2 <= args.frames <= MAX_FRAMES:
+        raise ConfigError(f"--frames must lie in [2, {MAX_FRAMES}], got {args.frames}")
+    try:
+        check_image_size(args.width, args.height, "--width/--height")
+    except EifslamError as exc:
+        raise ConfigError(str(exc)) from None
+    ensure_output_dir(args.out)
     scene = make_scene(n_frames=args.frames, width=args.width, height=args.height,
                        hfov_deg=args.hfov, seed=args.seed)
     t0 = time.perf_counter()

@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
-from ..errors import ConfigError, EifslamError
+from ..errors import ConfigError, DatasetError
 from ..frontend.config import DETECTORS
 from ..system.config import Mode, SlamConfig
 
 _DEFAULT = SlamConfig()
+
+#: the kinds of state ``--scale-distance`` can name
+SCALE_KINDS = ("pose", "feature")
 
 
 def add_common_options(p: argparse.ArgumentParser, max_features: int | None = None) -> None:
@@ -47,6 +51,9 @@ def make_config(args: argparse.Namespace, base: SlamConfig | None = None) -> Sla
     """The configuration the command-line options ask for: ``base`` (default
     ``SlamConfig()``) with only the options the user passed changed."""
     fe: dict = {}
+    max_frames = getattr(args, "max_frames", None)  # not a configuration value: checked here, early
+    if max_frames is not None and max_frames < 1:
+        raise ConfigError(f"--max-frames must be >= 1, got {max_frames}")
     if args.map_fraction is not None:
         if not 0.0 < args.map_fraction <= 1.0:
             raise ConfigError(f"--map-fraction must lie in (0, 1], got {args.map_fraction}")
@@ -60,21 +67,55 @@ def make_config(args: argparse.Namespace, base: SlamConfig | None = None) -> Sla
 
 
 def parse_scale(values: list[str] | None) -> tuple | None:
-    """``--scale-distance KIND_A ID_A KIND_B ID_B LENGTH`` as ``((kind, id), (kind, id), length)``."""
+    """``--scale-distance KIND_A ID_A KIND_B ID_B LENGTH`` as ``((kind, id), (kind, id), length)``.
+
+    Checked before any work: kinds ``pose``/``feature``, ids non-negative integers, the
+    length (map units) positive and finite. Whether the two states exist is known only at
+    the end of the run (a missing one gives a warning and unscaled outputs).
+
+    Raises
+    ------
+    ConfigError
+        One line naming the option and the bad value.
+    """
     if not values:
         return None
     ka, ia, kb, ib, length = values
+    keys = []
+    for kind, ident in ((ka, ia), (kb, ib)):
+        if kind not in SCALE_KINDS:
+            raise ConfigError(f"--scale-distance: unknown state kind {kind!r} (use 'pose' or 'feature')")
+        try:
+            k = int(ident)
+        except ValueError:
+            raise ConfigError(f"--scale-distance: state id must be an integer, got {ident!r}") from None
+        if k < 0:
+            raise ConfigError(f"--scale-distance: state id must be >= 0, got {k}")
+        keys.append((kind, k))
     try:
-        return (ka, int(ia)), (kb, int(ib)), float(length)
-    except ValueError as exc:
-        raise EifslamError(f"--scale-distance: {exc}") from exc
+        d = float(length)
+    except ValueError:
+        raise ConfigError(f"--scale-distance: length must be a number, got {length!r}") from None
+    if not (math.isfinite(d) and d > 0):
+        raise ConfigError(f"--scale-distance: length must be positive and finite, got {length!r}")
+    if keys[0] == keys[1]:
+        raise ConfigError(f"--scale-distance: the two states are the same ({ka} {keys[0][1]})")
+    return keys[0], keys[1], d
 
 
 def main(args: argparse.Namespace) -> int:
     from ..evaluation.outputs import run_to_folder
     from ..io import open_source
+    from ..io.files import ensure_output_dir
 
+    # everything that can be checked before any work: options, output folder, then source
+    scale = parse_scale(args.scale_distance)
+    config = make_config(args)
+    ensure_output_dir(args.out)
     seq = open_source(args.source, camera=args.camera)
-    rep = run_to_folder(seq, make_config(args), args.out, max_frames=args.max_frames,
-                        scale=parse_scale(args.scale_distance), html=not args.no_html)
-    return 0 if rep.get("frames_tracked", 0) > 0 else 1
+    rep = run_to_folder(seq, config, args.out, max_frames=args.max_frames,
+                        scale=scale, html=not args.no_html)
+    if rep.get("frames_tracked", 0) == 0:
+        raise DatasetError(f"{args.source}: no frame could be tracked ({rep.get('frames', 0)} read; "
+                           f"the empty outputs are in {args.out})")
+    return 0

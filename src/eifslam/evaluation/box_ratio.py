@@ -64,9 +64,11 @@ def add_box_ratio(rep: dict[str, Any], out_dir: str | Path, scene) -> dict[str, 
     """
     import json
 
+    from ..io.files import atomic_write
+
     try:
         rep.update(box_ratio_figures(out_dir, scene))
     except Exception as exc:  # scoring must not lose the run
         rep["box_ratio_error"] = f"{type(exc).__name__}: {exc}"
-    (Path(out_dir) / "report.json").write_text(json.dumps(rep, indent=2, default=float))
+    atomic_write(Path(out_dir) / "report.json", json.dumps(rep, indent=2, default=float))
     return rep

@@ -8,10 +8,17 @@ after a run and writes, into one folder,
 * ``frames.json``     per-frame tracking state, stage milliseconds, state size;
 * ``information.npz`` the final information matrix (``scipy.sparse.save_npz``);
 * ``report.json``     the summary figures, with ATE when ground truth is given
-  (ground truth is read here, for scoring only, after the estimate is final).
+  (ground truth is read here, for scoring only, after the estimate is final; a ground
+  truth that cannot be read or used leaves ``evaluation_skipped`` with the reason, and
+  every estimate is still written).
 
-``run_to_folder`` is the whole of ``eifslam run``: drive the system over a sequence
-(:func:`eifslam.system.runner.run_sequence`), then write the outputs.
+Every file is written atomically (a temporary file in the folder, then
+:func:`os.replace`), so a run killed while saving leaves no half-written file.
+
+``run_to_folder`` is the whole of ``eifslam run``: check the output folder, drive the
+system over a sequence (:func:`eifslam.system.runner.run_sequence`) while appending each
+tracked pose to ``trajectory.partial.tum`` (flushed per frame: a run killed by SIGKILL or
+a crash keeps it), then write the outputs and remove the partial file.
 """
 
 from __future__ import annotations
@@ -24,8 +31,14 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from ..errors import EifslamError, OutputError
 from ..io import Trajectory, write_ply, write_tum
+from ..io.files import atomic_path, atomic_write, ensure_output_dir
+from ..io.trajectory import TumAppender
 from ..system.slam import Slam, TrackingState
+
+#: the trajectory as tracked, written frame by frame during a run (removed at its end)
+PARTIAL_TRAJECTORY = "trajectory.partial.tum"
 
 
 def _median(vals: list[float]) -> float | None:
@@ -73,7 +86,7 @@ def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
             rep["ate_percent"] = ev.ate_percent
             rep["evaluation"] = ev.to_dict()
         except Exception as exc:  # evaluation must never lose the run's outputs
-            rep["evaluation_error"] = str(exc)
+            rep["evaluation_error"] = rep["evaluation_skipped"] = f"evaluation failed ({exc})"
     if extra:
         rep.update(extra)
     return rep
@@ -81,25 +94,74 @@ def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
 
 def write_outputs(slam: Slam, out_dir: str | Path, total_s: float, ground_truth: Trajectory | None = None,
                   extra: dict[str, Any] | None = None, html: bool = True) -> dict[str, Any]:
-    """Write every output file of a run into ``out_dir``; return the summary dict."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    t, P, Q = slam.trajectory()
-    write_tum(out / "trajectory.tum", t, P, Q)
+    """Write every output file of a run into ``out_dir``; return the summary dict.
+
+    Each file is written atomically and independently: one that cannot be written (a
+    full disk, a folder of the same name) does not stop the others; ``report.json`` lists
+    it under ``write_errors`` and :class:`OutputError` is raised once all were tried.
+    """
+    out = ensure_output_dir(out_dir)
+    errors: list[str] = []
+
+    def save(write, *args) -> None:
+        try:
+            write(*args)
+        except EifslamError as exc:
+            errors.append(str(exc))
+            print(f"eifslam: warning: {exc}", file=sys.stderr)
+
+    def save_npz(path: Path) -> None:
+        with atomic_path(path) as tmp:
+            sp.save_npz(tmp, slam.filter.information_matrix().tocsr())
+
+    t, P, Q = slam.trajectory()  # the estimate first: it is what a user cannot recompute
+    save(write_tum, out / "trajectory.tum", t, P, Q)
     _, X, cols = slam.map()
-    write_ply(out / "map.ply", X, cols)
-    (out / "frames.json").write_text(json.dumps({"frames": frame_rows(slam)}, indent=1))
-    sp.save_npz(out / "information.npz", slam.filter.information_matrix().tocsr())
+    save(write_ply, out / "map.ply", X, cols)
+    save(atomic_write, out / "frames.json", json.dumps({"frames": frame_rows(slam)}, indent=1))
+    save(save_npz, out / "information.npz")
     rep = summary(slam, total_s, ground_truth, extra)
-    (out / "report.json").write_text(json.dumps(rep, indent=2, default=float))
+    if errors:
+        rep["write_errors"] = list(errors)
+    save(atomic_write, out / "report.json", json.dumps(rep, indent=2, default=float))
+    if errors:
+        more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+        raise OutputError(errors[0] + more)
     if html:
         try:
             from .report import write_report
 
-            write_report(out, ground_truth=ground_truth)
+            write_report(out, ground_truth=None if "evaluation_skipped" in rep else ground_truth)
         except ImportError:
             pass
+        except EifslamError as exc:  # the figures are a view; everything else is written
+            print(f"eifslam: warning: report.html not written: {exc}", file=sys.stderr)
     return rep
+
+
+def scoring_ground_truth(seq) -> tuple[Trajectory | None, str | None]:
+    """The sequence's ground truth for scoring, or why there is none to use.
+
+    Ground truth is for scoring only, so a malformed or unusable file must not fail the
+    run: it gives ``(None, reason)`` and the caller warns and writes every estimate.
+
+    Returns
+    -------
+    (Trajectory or None, str or None)
+        ``(gt, None)``; ``(None, None)`` when the sequence has no ground truth; ``(None,
+        reason)`` when it has one that cannot be used.
+    """
+    if not getattr(seq, "has_ground_truth", False):
+        return None, None
+    try:
+        gt = seq.ground_truth()
+    except EifslamError as exc:
+        return None, f"ground truth not usable: {exc}"
+    except Exception as exc:  # noqa: BLE001 - scoring must never cost the run's outputs
+        return None, f"ground truth not usable: {type(exc).__name__}: {exc}"
+    if gt is not None and len(gt) == 0:
+        return None, "ground truth has no pose at the frame times"
+    return gt, None
 
 
 def summary_line(rep: dict[str, Any], out_dir: str | Path) -> str:
@@ -135,16 +197,46 @@ def run_to_folder(seq, config, out_dir: str | Path, max_frames: int | None = Non
     -------
     dict
         The figures written to ``report.json``.
+
+    Raises
+    ------
+    OutputError
+        ``out_dir`` cannot take the outputs (checked before the run starts).
     """
+    from ..system.runner import stop_requests
+
+    with stop_requests():  # SIGTERM while saving: the saving goes on (the CLI's handler)
+        return _run_and_write(seq, config, out_dir, max_frames, scale, html, extra, quiet, verbose)
+
+
+def _run_and_write(seq, config, out_dir: str | Path, max_frames: int | None, scale: tuple | None, html: bool,
+                   extra: dict[str, Any] | None, quiet: bool, verbose: bool) -> dict[str, Any]:
+    """:func:`run_to_folder` inside its stop-request block (same parameters)."""
     from ..system.runner import run_sequence
 
-    run = run_sequence(seq, config, max_frames=max_frames, scale=scale, quiet=quiet)
-    gt = seq.ground_truth() if getattr(seq, "has_ground_truth", False) else None
+    out = ensure_output_dir(out_dir)  # before any work
+    partial = TumAppender(out / PARTIAL_TRAJECTORY)
+
+    def on_frame(res) -> None:
+        if res.position is not None and res.quat_wxyz is not None:
+            partial.append(res.timestamp, res.position, res.quat_wxyz)
+
+    try:
+        run = run_sequence(seq, config, max_frames=max_frames, scale=scale, quiet=quiet, on_frame=on_frame)
+    finally:
+        partial.close()
+    gt, skipped = scoring_ground_truth(seq)
     extra = dict(extra or {})
     extra["source"] = str(getattr(seq, "root", ""))
     if run.stopped:
         extra["stopped"] = run.stopped
-    rep = write_outputs(run.slam, out_dir, run.seconds, gt, extra, html=html)
+    if run.scale_error:
+        extra["scale_skipped"] = run.scale_error
+    if skipped:
+        print(f"eifslam: warning: {skipped}; evaluation skipped", file=sys.stderr)
+        extra["evaluation_skipped"] = extra["evaluation_error"] = skipped
+    rep = write_outputs(run.slam, out, run.seconds, gt, extra, html=html)
+    partial.path.unlink(missing_ok=True)  # trajectory.tum, complete, replaces it
     if verbose:
         print(summary_line(rep, out_dir), file=sys.stderr)
     return rep

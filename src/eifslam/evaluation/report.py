@@ -21,7 +21,8 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from ..errors import DatasetError, EifslamError
+from ..errors import DatasetError, EifslamError, OutputError
+from ..io.files import atomic_path, atomic_write
 from ..io.ply import read_ply
 from ..io.trajectory import Trajectory, read_tum
 
@@ -160,8 +161,9 @@ def _save(fig: Any, out_dir: Path, name: str) -> str:
     """Save ``fig`` as ``out_dir/figures/name``; return the path relative to ``out_dir``."""
     rel = f"{FIGURE_DIR}/{name}"
     try:
-        fig.savefig(out_dir / rel, dpi=_DPI)
-    except OSError as exc:
+        with atomic_path(out_dir / rel) as tmp:
+            fig.savefig(tmp, dpi=_DPI)
+    except (OSError, OutputError) as exc:
         raise DatasetError(f"{out_dir / rel}: cannot save figure ({exc})") from None
     finally:
         fig.clear()
@@ -418,8 +420,7 @@ def write_report(out_dir: str | Path, ground_truth: Trajectory | None = None,
 
     path = out / "report.html"
     try:
-        path.write_text(_html(title, out, summary, summary_notes, evaluation, sections),
-                        encoding="utf-8")
-    except OSError as exc:
+        atomic_write(path, _html(title, out, summary, summary_notes, evaluation, sections))
+    except (OSError, OutputError) as exc:
         raise DatasetError(f"{path}: cannot write report ({exc})") from None
     return path

@@ -65,18 +65,63 @@ _OpenCVLoader.add_multi_constructor("tag:yaml.org,2002:", _any_tag)
 _OpenCVLoader.add_multi_constructor("!", _any_tag)
 
 
+#: largest camera file read, bytes (a camera file is a few hundred bytes)
+MAX_CAMERA_FILE_BYTES = 1_000_000
+#: largest number of YAML nodes (scalars, lists, mappings) and deepest nesting accepted
+MAX_YAML_NODES = 10_000
+MAX_YAML_DEPTH = 32
+
+
 def _read_text(path: Path) -> str:
-    return read_text(path, "camera file", CalibrationError)
+    return read_text(path, "camera file", CalibrationError, max_bytes=MAX_CAMERA_FILE_BYTES)
+
+
+def _check_yaml_events(body: str, name: str) -> None:
+    """Refuse, before anything is built, YAML with aliases (``*ref``: their expansion can
+    be exponential, the "billion laughs"), more than :data:`MAX_YAML_NODES` nodes or
+    nesting deeper than :data:`MAX_YAML_DEPTH`. A camera file needs none of these."""
+    nodes = depth = 0
+    for event in yaml.parse(body, Loader=yaml.SafeLoader):
+        if isinstance(event, yaml.AliasEvent):
+            raise CalibrationError(f"{name}: YAML aliases (*{event.anchor}) are not accepted in a camera file")
+        if isinstance(event, (yaml.ScalarEvent, yaml.CollectionStartEvent)):
+            nodes += 1
+            if nodes > MAX_YAML_NODES:
+                raise CalibrationError(f"{name}: YAML has more than {MAX_YAML_NODES} values")
+        if isinstance(event, yaml.CollectionStartEvent):
+            depth += 1
+            if depth > MAX_YAML_DEPTH:
+                raise CalibrationError(f"{name}: YAML is nested more than {MAX_YAML_DEPTH} levels deep")
+        elif isinstance(event, yaml.CollectionEndEvent):
+            depth -= 1
 
 
 def _load_yaml(text: str, name: str) -> Any:
     # OpenCV's FileStorage writes '%YAML:1.0', which is not valid YAML 1.1: drop directives
     body = "\n".join(ln for ln in text.splitlines() if not ln.lstrip().startswith("%YAML"))
     try:
+        _check_yaml_events(body, name)
         return yaml.load(body, Loader=_OpenCVLoader)  # noqa: S506 (SafeLoader subclass)
+    except RecursionError:
+        raise CalibrationError(f"{name}: YAML is nested too deeply") from None
+    except ValueError as exc:  # e.g. an integer of more digits than Python converts
+        raise CalibrationError(f"{name}: not valid YAML ({_cut(str(exc).splitlines()[0])})") from None
     except yaml.YAMLError as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise CalibrationError(f"{name}: not valid YAML ({first})") from None
+
+
+def _cut(text: str, n: int = 60) -> str:
+    """``text`` cut to ``n`` characters, for messages."""
+    return text if len(text) <= n else text[: n - 3] + "..."
+
+
+def _short(v: Any, n: int = 60) -> str:
+    """``repr(v)`` cut to ``n`` characters, for messages."""
+    try:
+        return _cut(repr(v), n)
+    except ValueError:  # an int of more digits than Python will print
+        return f"a {type(v).__name__} too large to print"
 
 
 def _number(data: dict, key: str, name: str, default: float | None = None) -> float:
@@ -86,10 +131,14 @@ def _number(data: dict, key: str, name: str, default: float | None = None) -> fl
         raise CalibrationError(f"{name}: missing key '{key}'")
     v = data[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise CalibrationError(f"{name}: key '{key}' must be a number, got {v!r}")
-    if not np.isfinite(v):
-        raise CalibrationError(f"{name}: key '{key}' must be finite, got {v!r}")
-    return float(v)
+        raise CalibrationError(f"{name}: key '{key}' must be a number, got {_short(v)}")
+    try:
+        f = float(v)
+    except OverflowError:  # an int too large for a float
+        f = float("inf")
+    if not np.isfinite(f):
+        raise CalibrationError(f"{name}: key '{key}' must be finite, got {_short(v)}")
+    return f
 
 
 def _positive(value: float, key: str, name: str) -> float:
@@ -122,17 +171,17 @@ def _number_list(v: Any, key: str, name: str) -> list[float]:
     if isinstance(v, dict) and "data" in v:  # !!opencv-matrix
         v = v["data"]
     if not isinstance(v, (list, tuple)):
-        raise CalibrationError(f"{name}: key '{key}' must be a list of numbers, got {v!r}")
+        raise CalibrationError(f"{name}: key '{key}' must be a list of numbers, got {_short(v)}")
     return [_number({key: x}, key, name) for x in v]
 
 
 def _parse_eifslam(data: dict, name: str, image_size: ImageSize) -> PinholeCamera:
-    unknown = sorted(set(data) - _EIFSLAM_KEYS)
+    unknown = sorted(map(str, set(data) - _EIFSLAM_KEYS))
     if unknown:
-        raise CalibrationError(f"{name}: unknown key(s) {', '.join(map(repr, unknown))}")
+        raise CalibrationError(f"{name}: unknown key(s) {_cut(', '.join(map(repr, unknown)))}")
     model = data.get("model", "pinhole")
     if model != "pinhole":
-        raise CalibrationError(f"{name}: key 'model' must be 'pinhole', got {model!r}")
+        raise CalibrationError(f"{name}: key 'model' must be 'pinhole', got {_short(model)}")
     fx = _positive(_number(data, "fx", name), "fx", name)
     fy = _positive(_number(data, "fy", name), "fy", name)
     cx, cy = _number(data, "cx", name), _number(data, "cy", name)
@@ -180,11 +229,11 @@ def _parse_euroc(data: dict, name: str) -> PinholeCamera:
         raise CalibrationError(f"{name}: key 'resolution' must be [width, height]")
     model = data.get("camera_model", "pinhole")
     if model != "pinhole":
-        raise CalibrationError(f"{name}: key 'camera_model' must be 'pinhole', got {model!r}")
+        raise CalibrationError(f"{name}: key 'camera_model' must be 'pinhole', got {_short(model)}")
     dmodel = data.get("distortion_model", "radial-tangential")
     if dmodel not in ("radial-tangential", "radtan", "none"):
         raise CalibrationError(
-            f"{name}: key 'distortion_model' {dmodel!r} is not supported (radial-tangential)"
+            f"{name}: key 'distortion_model' {_short(dmodel)} is not supported (radial-tangential)"
         )
     dist = tuple(_number_list(data.get("distortion_coefficients", [0.0] * 4), "distortion_coefficients", name))
     if len(dist) not in (0, 4, 5, 8):

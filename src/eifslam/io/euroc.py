@@ -63,7 +63,9 @@ def read_euroc_csv(path: str | Path, min_columns: int) -> tuple[NDArray[np.int64
         try:
             stamps.append(int(fields[0]))
         except ValueError:
-            raise DatasetError(f"{path}:{lineno}: timestamp {fields[0]!r} is not integer ns") from None
+            raise DatasetError(f"{path}:{lineno}: timestamp {fields[0][:40]!r} is not integer ns") from None
+        if not 0 <= stamps[-1] < 2**63:
+            raise DatasetError(f"{path}:{lineno}: timestamp out of range (0 .. 2^63 ns)")
         rest.append(fields[1:])
     if not stamps:
         raise DatasetError(f"{path}: no data lines")

@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DatasetError, ImageError
+from .image_header import check_image_size, header_size
 
 __all__ = ["IMAGE_EXTENSIONS", "read_image", "image_size", "list_images"]
 
@@ -31,22 +32,29 @@ def read_image(path: str | Path, grayscale: bool = False) -> NDArray[np.uint8]:
     Raises
     ------
     ImageError
-        The file is missing or cannot be decoded (message names the file).
+        The file is missing or cannot be decoded, or its header claims a size over the
+        memory budget (:data:`~.image_header.MAX_IMAGE_PIXELS`; checked before decoding).
+        The message names the file.
     """
     path = Path(path)
     if not path.is_file():
         raise ImageError(f"{path}: image file not found")
+    size = header_size(path)
+    if size is not None:
+        check_image_size(size[0], size[1], str(path))
     flags = cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_ANYCOLOR
     img = cv2.imread(str(path), flags)
     if img is None or img.size == 0:
         raise ImageError(f"{path}: cannot decode image (corrupt or unsupported format)")
+    check_image_size(img.shape[1], img.shape[0], str(path))  # formats without a parsed header
     if img.dtype != np.uint8:
         img = cv2.convertScaleAbs(img, alpha=255.0 / max(float(img.max()), 1.0))
     return img
 
 
 def image_size(path: str | Path) -> tuple[int, int]:
-    """``(width, height)`` in pixels of an image file (decodes it)."""
+    """``(width, height)`` in pixels of an image file (decodes it: EXIF orientation
+    counts; the header's claim is checked against the budget first)."""
     img = read_image(path)
     return int(img.shape[1]), int(img.shape[0])
 

@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DatasetError
+from .files import atomic_path
 
 __all__ = ["write_ply", "read_ply"]
 
@@ -32,7 +33,7 @@ def write_ply(
     binary: bool = True,
     double: bool = False,
 ) -> None:
-    """Write a coloured point cloud.
+    """Write a coloured point cloud (atomically: see :func:`~.files.atomic_path`).
 
     Parameters
     ----------
@@ -78,7 +79,7 @@ def write_ply(
     if colors is not None:
         header += ["property uchar red", "property uchar green", "property uchar blue"]
     header.append("end_header")
-    with open(path, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:  # a kill never leaves half a file
         fh.write(("\n".join(header) + "\n").encode("ascii"))
         if binary:
             fh.write(data.tobytes())
@@ -107,6 +108,15 @@ def read_ply(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.uint8] |
         raw = path.read_bytes()
     except FileNotFoundError:
         raise DatasetError(f"{path}: PLY file not found") from None
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read PLY file ({exc.strerror or exc})") from None
+    try:
+        return _parse_ply(raw, path)
+    except (ValueError, IndexError, UnicodeDecodeError) as exc:  # a malformed header or body
+        raise DatasetError(f"{path}: malformed PLY file ({exc})") from None
+
+
+def _parse_ply(raw: bytes, path: Path) -> tuple[NDArray[np.float64], NDArray[np.uint8] | None]:
     end = raw.find(b"end_header")
     if not raw.startswith(b"ply") or end < 0:
         raise DatasetError(f"{path}: not a PLY file (no 'ply' magic or 'end_header')")
@@ -123,6 +133,8 @@ def read_ply(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.uint8] |
             element = tok[1]
             if element == "vertex":
                 n_vertex = int(tok[2])
+                if n_vertex < 0:
+                    raise DatasetError(f"{path}: negative vertex count {n_vertex}")
             elif int(tok[2]) > 0:
                 raise DatasetError(f"{path}: only vertex elements are supported, found {tok[1]}")
         elif tok[0] == "property" and element == "vertex":

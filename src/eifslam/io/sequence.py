@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from ..geometry.camera import PinholeCamera
 from ..errors import DatasetError, ImageError
+from .image_header import check_image_size
 from .images import read_image
 from .trajectory import Trajectory
 
@@ -95,6 +96,8 @@ class Sequence:
                 f"{root}: frame timestamps must increase strictly "
                 f"({frames[k].name} at t={ts[k]!r} follows t={ts[k - 1]!r})"
             )
+        # the camera's image size against the memory budget, before any image is read
+        check_image_size(int(camera.width), int(camera.height), str(root))
         self.name = name
         self.root = Path(root)
         self.camera = camera
@@ -179,7 +182,11 @@ class Sequence:
 class VideoSequence(Sequence):
     """A sequence whose frames are decoded from a video file with ``cv2.VideoCapture``.
 
-    Sequential :meth:`load` calls decode frame after frame; a jump seeks.
+    Frames are decoded in order, never by seeking (seeking lands on the nearest key frame
+    for many codecs, and on the wrong frame after a corrupt stretch): a jump forward
+    decodes the frames in between, a jump back re-opens the file. A frame that does not
+    decode raises :class:`ImageError` and the next one is decoded after it, so a corrupt
+    middle costs only its own frames.
     """
 
     def __init__(self, *args, **kwargs) -> None:  # same parameters as Sequence
@@ -206,13 +213,16 @@ class VideoSequence(Sequence):
                 self._cap = None
                 raise ImageError(f"{self.root}: cannot open video file")
         k = int(frame.video_index if frame.video_index is not None else frame.index)
-        if k != self._next:
-            self._cap.set(cv2.CAP_PROP_POS_FRAMES, k)
-        ok, img = self._cap.read()
-        if not ok or img is None:
+        if k < self._next:  # back: start again
             self.close()
+            return self._read(frame, grayscale)
+        while self._next < k:  # forward: decode (not seek) the frames in between
+            self._cap.grab()
+            self._next += 1
+        ok, img = self._cap.read()
+        self._next = k + 1  # a failed frame is consumed too: the next one follows it
+        if not ok or img is None:
             raise ImageError(f"{self.root}: cannot decode video frame {k}")
-        self._next = k + 1
         if grayscale and img.ndim == 3:
             img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
         return img

@@ -17,13 +17,13 @@ from typing import TextIO
 import numpy as np
 from numpy.typing import NDArray
 
-from .files import read_text
-from ..errors import DatasetError
+from .files import atomic_write, read_text
+from ..errors import DatasetError, OutputError
 from ..geometry.rotations import quat_normalize, quat_to_rotmat, quat_wxyz_to_xyzw, quat_xyzw_to_wxyz
 
 Array = NDArray[np.float64]
 
-__all__ = ["Trajectory", "read_tum", "write_tum", "parse_tum", "associate"]
+__all__ = ["Trajectory", "TumAppender", "read_tum", "write_tum", "parse_tum", "associate"]
 
 
 @dataclass(frozen=True)
@@ -182,7 +182,8 @@ def write_tum(
     quats_wxyz: Array,
     header: str | None = "timestamp tx ty tz qx qy qz qw  (camera-to-world)",
 ) -> None:
-    """Write camera-to-world poses as a TUM trajectory file.
+    """Write camera-to-world poses as a TUM trajectory file (atomically: a temporary file
+    in the same folder renamed over ``path``, so a reader never sees half a file).
 
     Parameters
     ----------
@@ -203,7 +204,60 @@ def write_tum(
     for t, p, qq in zip(traj.timestamps, traj.positions, q):
         vals = " ".join(f"{v:.9f}" for v in (*p, *qq))
         lines.append(f"{t:.9f} {vals}")
-    Path(path).write_text("\n".join(lines) + "\n")
+    atomic_write(path, "\n".join(lines) + "\n")
+
+
+class TumAppender:
+    """A TUM file written one pose at a time, each line flushed to the operating system.
+
+    The trajectory of a run as it is tracked: a run killed by ``SIGKILL`` or a crash
+    keeps every pose appended before (``flush`` hands the line to the kernel, which
+    writes it even if the process dies; only a machine crash can lose the last lines).
+    Non-finite poses and timestamps that do not increase are skipped, so the file always
+    parses with :func:`read_tum`.
+
+    Parameters
+    ----------
+    path : file to create (truncated if it exists).
+
+    Raises
+    ------
+    OutputError
+        The file cannot be created or written (names it).
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._last_t = -np.inf
+        try:
+            self._fh: TextIO | None = open(self.path, "w", encoding="ascii")
+            self._fh.write("# timestamp tx ty tz qx qy qz qw  (camera-to-world, as tracked)\n")
+            self._fh.flush()
+        except OSError as exc:
+            raise OutputError(f"{self.path}: cannot write ({exc.strerror or exc})") from None
+
+    def append(self, timestamp: float, position: Array, quat_wxyz: Array) -> bool:
+        """Append one pose (``position`` (3,) world frame, ``quat_wxyz`` (4,) of ``R_wc``);
+        False when it was skipped (non-finite, zero quaternion, time not increasing)."""
+        p = np.asarray(position, np.float64).reshape(3)
+        q = np.asarray(quat_wxyz, np.float64).reshape(4)
+        if (self._fh is None or not np.isfinite(timestamp) or timestamp <= self._last_t
+                or not np.all(np.isfinite(p)) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-6):
+            return False
+        q = quat_wxyz_to_xyzw(q / np.linalg.norm(q))
+        try:
+            self._fh.write(f"{timestamp:.9f} " + " ".join(f"{v:.9f}" for v in (*p, *q)) + "\n")
+            self._fh.flush()
+        except OSError as exc:
+            raise OutputError(f"{self.path}: cannot write ({exc.strerror or exc})") from None
+        self._last_t = float(timestamp)
+        return True
+
+    def close(self) -> None:
+        """Close the file (it stays on disk)."""
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
 
 
 def associate(

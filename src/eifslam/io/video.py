@@ -2,7 +2,9 @@
 
 The camera comes from the ``camera`` argument, else from ``<stem>.yaml`` or
 ``camera.yaml`` next to the video. Frame ``k`` has timestamp ``k / fps`` (seconds; the
-frame index when the file reports no frame rate). Optional ground truth: ``<stem>.tum``
+frame index when the file reports no frame rate). A video whose middle is corrupt keeps
+every frame that decodes: the undecodable ones are skipped (each with a one-line
+message) and decoding goes on after them. Optional ground truth: ``<stem>.tum``
 or ``groundtruth.tum`` next to the video, associated with the frame times.
 """
 
@@ -26,6 +28,28 @@ __all__ = ["open_video", "VIDEO_EXTENSIONS"]
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".webm")
 
 
+#: undecodable frames in a row after which a video is taken to have ended
+MAX_BAD_RUN = 250
+
+
+def _count_frames(cap) -> int:
+    """Frames of an open capture, counted by decoding from the start: a frame that fails
+    (a corrupt middle) is counted and decoding goes on, so every decodable frame after it
+    is kept; :data:`MAX_BAD_RUN` failures in a row end the count at the last good frame."""
+    import cv2
+
+    cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+    k = bad_run = 0
+    last_good = -1
+    while bad_run < MAX_BAD_RUN:
+        if cap.grab():
+            last_good, bad_run = k, 0
+        else:
+            bad_run += 1
+        k += 1
+    return last_good + 1
+
+
 def _probe(path: Path) -> tuple[int, float, tuple[int, int]]:
     """Frame count, frame rate (0 if unknown) and (width, height) of a video."""
     cap = cv2.VideoCapture(str(path))
@@ -42,9 +66,7 @@ def _probe(path: Path) -> tuple[int, float, tuple[int, int]]:
             if not (cap.grab() and not cap.grab()):
                 n = 0
         if n <= 0:
-            cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
-            while cap.grab():
-                n += 1
+            n = _count_frames(cap)
     finally:
         cap.release()
     if n == 0:

@@ -1,24 +1,69 @@
 """Drive a :class:`~eifslam.system.slam.Slam` over a sequence with a progress bar; lose nothing.
 
-Ctrl-C or a failing frame stops the loop; :meth:`Slam.finish` then ends the run as the
+Ctrl-C, a stop request (:func:`request_stop`: the CLI's SIGTERM and SIGHUP) or a failing
+frame stops the loop; :meth:`Slam.finish` then ends the run as the
 configured mode says, and what was estimated so far is returned. Writing the outputs is
 the caller's job (:func:`eifslam.evaluation.outputs.run_to_folder`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 from dataclasses import dataclass
+from typing import Callable, Iterator
 
 from tqdm import tqdm
 
 from ..errors import EifslamError, ImageError
 from .config import SlamConfig
 from .finishing import FinishReport
-from .slam import Slam
+from .slam import Slam, TrackResult
 
-__all__ = ["RunResult", "run_sequence"]
+__all__ = ["RunResult", "request_stop", "run_sequence", "stop_requests"]
+
+
+class _StopRequest:
+    """A stop asked of a run (by a signal handler): the loop honours it between frames,
+    so the system is never left half way through a frame; once the loop is over, the
+    run's finishing and saving go on."""
+
+    depth = 0  # runs in progress (nested stop_requests blocks)
+    reason: str | None = None
+
+
+_STOP = _StopRequest()
+
+
+@contextlib.contextmanager
+def stop_requests() -> Iterator[None]:
+    """While inside, :func:`request_stop` is accepted. :func:`run_sequence` is inside one;
+    a caller that also saves the outputs wraps the saving too, so a stop asked while it
+    saves lets it finish."""
+    _STOP.depth += 1
+    try:
+        yield
+    finally:
+        _STOP.depth -= 1
+        if _STOP.depth == 0:
+            _STOP.reason = None
+
+
+def request_stop(reason: str) -> bool:
+    """Ask the run in progress to stop after the frame being tracked (it then finishes
+    and its outputs are written, as after Ctrl-C). Safe to call from a signal handler.
+
+    Returns
+    -------
+    bool
+        False when no run is in progress or a stop is already pending: the caller should
+        then interrupt at once (``raise KeyboardInterrupt``).
+    """
+    if _STOP.depth == 0 or _STOP.reason is not None:
+        return False
+    _STOP.reason = reason
+    return True
 
 
 @dataclass
@@ -34,16 +79,20 @@ class RunResult:
     stopped : str or None
         Why the run stopped early or a finishing step failed (None: it did not).
     finish : FinishReport
+    scale_error : str or None
+        Why the known length was not applied (a state not in the map, ...); the outputs
+        are then unscaled.
     """
 
     slam: Slam
     seconds: float
     stopped: str | None
     finish: FinishReport
+    scale_error: str | None = None
 
 
 def run_sequence(seq, config: SlamConfig, max_frames: int | None = None, scale: tuple | None = None,
-                 quiet: bool = False) -> RunResult:
+                 quiet: bool = False, on_frame: Callable[[TrackResult], None] | None = None) -> RunResult:
     """Run SLAM over ``seq`` (an :mod:`eifslam.io` sequence, or anything with ``camera``,
     ``frames[k].timestamp``, ``load(k)`` and ``len``), then :meth:`Slam.finish`.
 
@@ -57,11 +106,20 @@ def run_sequence(seq, config: SlamConfig, max_frames: int | None = None, scale: 
         A known length between two states (:meth:`Slam.set_scale`), applied at the end.
     quiet : bool
         Hide the progress bar.
+    on_frame : callable, optional
+        Called with each frame's :class:`TrackResult` as it is tracked (e.g. to append
+        the pose to a file, so that a killed run keeps it).
 
     Returns
     -------
     RunResult
     """
+    with stop_requests():
+        return _run(seq, config, max_frames, scale, quiet, on_frame)
+
+
+def _run(seq, config: SlamConfig, max_frames: int | None, scale: tuple | None, quiet: bool,
+         on_frame: Callable[[TrackResult], None] | None) -> RunResult:
     slam = Slam(seq.camera, config)
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     t0 = time.perf_counter()
@@ -69,6 +127,8 @@ def run_sequence(seq, config: SlamConfig, max_frames: int | None = None, scale: 
     bar = tqdm(range(n), desc="eifslam", unit="frame", disable=quiet, file=sys.stderr)
     try:
         for k in bar:
+            if _STOP.reason is not None:
+                raise KeyboardInterrupt(_STOP.reason)
             try:
                 image = seq.load(k)
             except ImageError as exc:  # a missing/corrupt image: report it, keep going
@@ -76,8 +136,10 @@ def run_sequence(seq, config: SlamConfig, max_frames: int | None = None, scale: 
                 continue
             res = slam.track(image, seq.frames[k].timestamp)
             bar.set_postfix(state=res.state.value, map=res.map_features)
-    except KeyboardInterrupt:
-        stopped = "interrupted"
+            if on_frame is not None:
+                on_frame(res)
+    except KeyboardInterrupt as exc:  # Ctrl-C, or a stop request (raised between frames)
+        stopped = f"interrupted ({exc})" if str(exc) else "interrupted"
     except EifslamError as exc:
         stopped = f"stopped at a failing frame: {exc}"
     finally:
@@ -91,7 +153,12 @@ def run_sequence(seq, config: SlamConfig, max_frames: int | None = None, scale: 
     for msg in fin.failures:  # the filter's estimate is kept rather than the run lost
         stopped = (stopped + "; " if stopped else "") + msg
         print(f"eifslam: {msg}; writing the filter's estimate", file=sys.stderr)
+    scale_error = None
     if scale is not None and slam.filter.layout.n_poses >= 2:
         a, b, length = scale
-        slam.set_scale(a, b, length)
-    return RunResult(slam, time.perf_counter() - t0, stopped, fin)
+        try:
+            slam.set_scale(a, b, length)
+        except (EifslamError, KeyError) as exc:  # only wrong now the map is known: keep the run
+            scale_error = f"--scale-distance not applied: {exc.args[0] if exc.args else exc}"
+            print(f"eifslam: warning: {scale_error}; the outputs are unscaled", file=sys.stderr)
+    return RunResult(slam, time.perf_counter() - t0, stopped, fin, scale_error)
