@@ -26,3 +26,8 @@ class ConfigError(EifslamError):
 
 class EstimatorError(EifslamError):
     """The estimator was asked something it cannot answer (unknown state, singular system)."""
+
+
+class SessionError(EifslamError):
+    """A session file is not one this eifslam wrote (foreign, truncated, crafted or of
+    another version)."""

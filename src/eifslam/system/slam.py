@@ -310,6 +310,17 @@ class Slam:
         return recover_scale(self.filter, a, b, length)
 
     # -- sessions -----------------------------------------------------------------
+    @property
+    def waiting(self) -> list[int]:
+        """Frames without a pose that wait for the first baseline (placed once the map exists)."""
+        return list(self._waiting)
+
+    def restore(self, results: list[TrackResult], waiting: list[int]) -> None:
+        """Set the per-image record of a loaded session (:func:`~.session.load_session`)."""
+        self.results = list(results)
+        self._timestamps = {r.frame_id: r.timestamp for r in self.results}
+        self._waiting = [int(j) for j in waiting]
+
     def save(self, path: str | Path) -> None:
         """Save the whole session (filter, front end, results) to a file
         (:func:`~.session.save_session`)."""
