@@ -188,3 +188,51 @@ def test_hostile_files_are_refused_in_one_line_and_never_run(session_members, tm
 def test_cli_style_error_for_a_missing_session(tmp_path):
     with pytest.raises(SessionError, match="no such file"):
         Slam.load(tmp_path / "absent.npz")
+
+
+# -- the command line -------------------------------------------------------------------------
+def _folder(tmp_path: Path, n: int) -> Path:
+    import cv2
+    from eifslam.sim.scene import make_scene, render_frame
+
+    scene = make_scene(n_frames=54, width=320, height=240)
+    d = tmp_path / "data"
+    (d / "images").mkdir(parents=True)
+    for k in range(n):
+        cv2.imwrite(str(d / "images" / f"{k:06d}.png"), render_frame(scene, k))
+    c = scene.camera
+    (d / "camera.yaml").write_text(
+        f"model: pinhole\nwidth: {c.width}\nheight: {c.height}\nfx: {c.fx}\nfy: {c.fy}\ncx: {c.cx}\ncy: {c.cy}\n")
+    return d
+
+
+def test_cli_resume_continues_a_saved_run_on_the_later_frames(tmp_path, capsys):
+    from eifslam.cli.main import main as cli_main
+    from eifslam.io import read_tum
+
+    d = _folder(tmp_path, 6)
+    common = ["--no-html", "--mode", "filter"]
+    assert cli_main(["run", str(d), "--out", str(tmp_path / "whole"), *common]) == 0
+    sess = tmp_path / "first.npz"
+    assert cli_main(["run", str(d), "--out", str(tmp_path / "first"), "--max-frames", "3",
+                     "--save-session", str(sess), *common]) == 0
+    assert Slam.load(sess).n_frames == 3
+    assert cli_main(["run", str(d), "--out", str(tmp_path / "rest"), "--resume", str(sess), "--no-html"]) == 0
+    rep = json.loads((tmp_path / "rest" / "report.json").read_text())
+    whole = json.loads((tmp_path / "whole" / "report.json").read_text())
+    assert rep["frames"] == 6 and rep["frames_tracked"] == whole["frames_tracked"] >= 5
+    a, b = read_tum(tmp_path / "whole" / "trajectory.tum"), read_tum(tmp_path / "rest" / "trajectory.tum")
+    np.testing.assert_array_equal(a.timestamps, b.timestamps)
+    assert np.abs(a.positions - b.positions).max() < 1e-6
+    assert np.linalg.norm(a.positions[-1] - a.positions[0]) > 1e-2
+    # a configuration option cannot change a resumed session's configuration
+    capsys.readouterr()
+    assert cli_main(["run", str(d), "--out", str(tmp_path / "x"), "--resume", str(sess), "--features", "orb"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--features" in err[0]
+    # a file that is not a session is one line naming it
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"junk")
+    assert cli_main(["run", str(d), "--out", str(tmp_path / "y"), "--resume", str(bad)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("eifslam: error:") and str(bad) in err[0]

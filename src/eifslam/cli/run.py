@@ -38,6 +38,11 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--camera", type=Path, default=None, help="camera file (eifslam YAML, OpenCV YAML, KITTI calib.txt)")
     p.add_argument("--scale-distance", nargs=5, metavar=("KIND_A", "ID_A", "KIND_B", "ID_B", "LENGTH"), default=None,
                    help="known length between two states, e.g. 'pose 0 pose 10 2.5' or 'feature 12 feature 40 0.3'")
+    p.add_argument("--save-session", type=Path, default=None, metavar="FILE",
+                   help="save the session (.npz) after the last frame, to continue it with --resume")
+    p.add_argument("--resume", type=Path, default=None, metavar="FILE",
+                   help="continue a saved session on the frames of SOURCE after those it has "
+                        "(with the session's configuration)")
     add_common_options(p)
     p.set_defaults(func=main)
     return p
@@ -75,6 +80,17 @@ def main(args: argparse.Namespace) -> int:
     from ..io import open_source
 
     seq = open_source(args.source, camera=args.camera)
-    rep = run_to_folder(seq, make_config(args), args.out, max_frames=args.max_frames,
-                        scale=parse_scale(args.scale_distance), html=not args.no_html)
+    resume = None
+    if args.resume is not None:
+        from ..system.slam import Slam
+
+        resume = Slam.load(args.resume)
+        given = [f"--{k.replace('_', '-')}" for k in ("mode", "features", "map_fraction", "max_features")
+                 if getattr(args, k, None) is not None]
+        if given:
+            raise ConfigError(f"--resume continues with the session's configuration; {given[0]} cannot change it")
+    config = resume.config if resume is not None else make_config(args)
+    rep = run_to_folder(seq, config, args.out, max_frames=args.max_frames,
+                        scale=parse_scale(args.scale_distance), html=not args.no_html,
+                        slam=resume, save_session=args.save_session)
     return 0 if rep.get("frames_tracked", 0) > 0 else 1

@@ -112,7 +112,7 @@ def summary_line(rep: dict[str, Any], out_dir: str | Path) -> str:
 
 def run_to_folder(seq, config, out_dir: str | Path, max_frames: int | None = None, scale: tuple | None = None,
                   html: bool = True, extra: dict[str, Any] | None = None, quiet: bool = False,
-                  verbose: bool = True) -> dict[str, Any]:
+                  verbose: bool = True, **session: Any) -> dict[str, Any]:
     """Run SLAM over a sequence and write every output into ``out_dir``.
 
     Parameters
@@ -129,6 +129,9 @@ def run_to_folder(seq, config, out_dir: str | Path, max_frames: int | None = Non
         Copied into ``report.json``.
     verbose : bool
         Print :func:`summary_line` to stderr.
+    **session
+        ``slam`` (a loaded session to continue) and ``save_session`` (a path), passed to
+        :func:`~eifslam.system.runner.run_sequence`.
 
     Returns
     -------
@@ -137,7 +140,7 @@ def run_to_folder(seq, config, out_dir: str | Path, max_frames: int | None = Non
     """
     from ..system.runner import run_sequence
 
-    run = run_sequence(seq, config, max_frames=max_frames, scale=scale, quiet=quiet)
+    run = run_sequence(seq, config, max_frames=max_frames, scale=scale, quiet=quiet, **session)
     gt = seq.ground_truth() if getattr(seq, "has_ground_truth", False) else None
     extra = dict(extra or {})
     extra["source"] = str(getattr(seq, "root", ""))
