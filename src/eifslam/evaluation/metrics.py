@@ -40,7 +40,7 @@ from ..io.trajectory import Trajectory
 
 Array = NDArray[np.float64]
 
-__all__ = ["EvaluationError", "Sim3", "EvaluationResult", "align_sim3", "evaluate", "to_evo"]
+__all__ = ["DATASET_UNITS", "GT_UNITS", "EvaluationError", "Sim3", "EvaluationResult", "align_sim3", "evaluate", "to_evo"]
 
 
 class EvaluationError(EifslamError):
@@ -91,6 +91,13 @@ class Sim3:
         }
 
 
+#: The name of a length in the ground truth's unit when the unit is not known.
+GT_UNITS = "ground-truth units"
+#: The unit of the ground truth of every data set eifslam reads (KITTI, TUM RGB-D,
+#: EuRoC, Strecha, the built-in scene): metres.
+DATASET_UNITS = "m"
+
+
 def _stats(x: Array) -> dict[str, float | None]:
     if len(x) == 0:
         return {"rmse": None, "mean": None, "median": None, "max": None}
@@ -134,6 +141,10 @@ class EvaluationResult:
         Rotation error of each consecutive associated pair, degrees.
     rpe_dir_deg : (K,) float64
         Translation-direction error of each pair with non-zero motion, degrees.
+    units : str
+        Name of the ground truth's length unit, printed after every length ("m" for the
+        data sets eifslam reads, whose ground truth is in metres; "ground-truth units"
+        when it is not known).
     """
 
     ate_rmse: float
@@ -154,6 +165,7 @@ class EvaluationResult:
     ate_errors: Array = field(repr=False)
     rpe_rot_deg: Array = field(repr=False)
     rpe_dir_deg: Array = field(repr=False)
+    units: str = GT_UNITS
 
     @property
     def rpe_rot(self) -> dict[str, float | None]:
@@ -168,6 +180,7 @@ class EvaluationResult:
     def to_dict(self, arrays: bool = False) -> dict[str, Any]:
         """JSON-friendly dictionary of the figures; with ``arrays`` also per-pose data."""
         d: dict[str, Any] = {
+            "units": self.units,
             "ate_rmse": self.ate_rmse,
             "ate_mean": self.ate_mean,
             "ate_median": self.ate_median,
@@ -197,13 +210,14 @@ class EvaluationResult:
             return "n/a" if v is None else f"{v:.3f}"
 
         pct = f"{self.ate_percent:.3f} %" if np.isfinite(self.ate_percent) else "n/a"
+        u = self.units
         return "\n".join(
             [
                 f"matched poses     {self.n_matched} (estimate {self.n_estimate}, "
                 f"ground truth {self.n_ground_truth})",
                 f"tracked fraction  {self.tracked_fraction:.3f}",
-                f"ATE RMSE (Sim3)   {self.ate_rmse:.6g}  ({pct} of {self.gt_path_length:.4g} path)",
-                f"ATE mean/median/max {self.ate_mean:.6g} / {self.ate_median:.6g} / {self.ate_max:.6g}",
+                f"ATE RMSE (Sim3)   {self.ate_rmse:.6g} {u}  ({pct} of {self.gt_path_length:.4g} {u} path)",
+                f"ATE mean/median/max {self.ate_mean:.6g} / {self.ate_median:.6g} / {self.ate_max:.6g} {u}",
                 f"RPE rotation deg  rmse {fmt(rr['rmse'])}  mean {fmt(rr['mean'])}  "
                 f"median {fmt(rr['median'])}  max {fmt(rr['max'])}",
                 f"RPE direction deg rmse {fmt(rd['rmse'])}  mean {fmt(rd['mean'])}  "
@@ -274,7 +288,8 @@ def _relative_errors(R_gt: Array, p_gt: Array, R_est: Array, p_est: Array) -> tu
     return rot, np.degrees(np.arctan2(cross, dot))
 
 
-def evaluate(estimate: Trajectory, ground_truth: Trajectory, max_diff: float = 0.01) -> EvaluationResult:
+def evaluate(estimate: Trajectory, ground_truth: Trajectory, max_diff: float = 0.01,
+             units: str = GT_UNITS) -> EvaluationResult:
     """Score an estimated trajectory against ground truth.
 
     Poses are associated by nearest timestamp within ``max_diff`` seconds (evo's
@@ -286,6 +301,7 @@ def evaluate(estimate: Trajectory, ground_truth: Trajectory, max_diff: float = 0
     estimate : camera-to-world poses, any world frame and scale.
     ground_truth : camera-to-world poses.
     max_diff : association window in seconds.
+    units : name of the ground truth's length unit (for printing; nothing is converted).
 
     Returns
     -------
@@ -338,4 +354,5 @@ def evaluate(estimate: Trajectory, ground_truth: Trajectory, max_diff: float = 0
         ate_errors=err,
         rpe_rot_deg=rot,
         rpe_dir_deg=dirs,
+        units=str(units),
     )

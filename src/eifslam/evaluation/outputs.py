@@ -45,7 +45,7 @@ def frame_rows(slam: Slam) -> list[dict[str, Any]]:
 def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
             extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """The figures of ``report.json``."""
-    from .metrics import evaluate
+    from .metrics import DATASET_UNITS, evaluate
 
     res = slam.results
     n = len(res)
@@ -67,8 +67,9 @@ def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
     if ground_truth is not None:
         t, P, Q = slam.trajectory()
         try:
-            ev = evaluate(Trajectory(t, P, Q), ground_truth)
+            ev = evaluate(Trajectory(t, P, Q), ground_truth, units=DATASET_UNITS)
             rep["ate_rmse"] = ev.ate_rmse
+            rep["ate_units"] = ev.units
             rep["ate_percent"] = ev.ate_percent
             rep["evaluation"] = ev.to_dict()
         except Exception as exc:  # evaluation must never lose the run's outputs
@@ -93,9 +94,10 @@ def write_outputs(slam: Slam, out_dir: str | Path, total_s: float, ground_truth:
     (out / "report.json").write_text(json.dumps(rep, indent=2, default=float))
     if html:
         try:
+            from .metrics import DATASET_UNITS
             from .report import write_report
 
-            write_report(out, ground_truth=ground_truth)
+            write_report(out, ground_truth=ground_truth, units=DATASET_UNITS)
         except ImportError:
             pass
     return rep
@@ -106,7 +108,7 @@ def summary_line(rep: dict[str, Any], out_dir: str | Path) -> str:
     line = (f"eifslam: {rep['frames_tracked']}/{rep['frames']} frames tracked, {rep['map_features']} map features, "
             f"{rep['fps']} fps")
     if "ate_rmse" in rep:
-        line += f", ATE {rep['ate_rmse']:.4g}"
+        line += f", ATE {rep['ate_rmse']:.4g} {rep.get('ate_units', '')}".rstrip()
     return line + f"; outputs in {out_dir}"
 
 

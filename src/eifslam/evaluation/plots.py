@@ -18,6 +18,9 @@ from .plots_eval import plot_evaluation, top_view_axes
 
 Array = NDArray[np.float64]
 
+#: The length unit of an estimate's own frame (its scale is set between the first two poses).
+MAP_UNITS = "map units"
+
 __all__ = [
     "STAGES",
     "subsample_indices",
@@ -115,6 +118,7 @@ def plot_map_top(
     max_points: int = 20_000,
     point_size: float = 2.0,
     rng: np.random.Generator | None = None,
+    units: str = MAP_UNITS,
 ) -> None:
     """Top view of the camera trajectory over the map.
 
@@ -130,6 +134,8 @@ def plot_map_top(
     max_points : features drawn at most (random subset beyond that).
     point_size : marker area of the features (points²).
     rng : generator for the subset (see :func:`subsample_indices`).
+    units : name of the length unit of the positions, on the axes (default: the map's own
+        unit, fixed by ``system.scale_distance`` between the first two poses).
     """
     C = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -145,8 +151,8 @@ def plot_map_top(
     lo, hi = robust_limits(C, P)
     ax.set_xlim(lo[a], hi[a])
     ax.set_ylim(lo[b], hi[b])
-    ax.set_xlabel(_AXIS_NAMES[a])
-    ax.set_ylabel(_AXIS_NAMES[b])
+    ax.set_xlabel(f"{_AXIS_NAMES[a]} ({units})")
+    ax.set_ylabel(f"{_AXIS_NAMES[b]} ({units})")
     ax.set_aspect("equal", adjustable="box")
     if len(C) or len(idx):
         ax.legend(loc="best", fontsize="small", markerscale=2)
@@ -171,13 +177,14 @@ def plot_map_3d(
     max_points: int = 20_000,
     point_size: float = 1.0,
     rng: np.random.Generator | None = None,
+    units: str = MAP_UNITS,
 ) -> None:
     """Perspective view of the trajectory and the map.
 
     Parameters
     ----------
     ax : matplotlib 3-D Axes (``fig.add_subplot(projection="3d")``).
-    positions, points, colors, max_points, point_size, rng
+    positions, points, colors, max_points, point_size, rng, units
         As in :func:`plot_map_top`.
     R_wc : (N, 3, 3) camera-to-world rotations. When given, the world axis along the
         mean camera ``-y`` (up in the images) is drawn upwards; otherwise ``z`` is.
@@ -210,9 +217,9 @@ def plot_map_3d(
     ax.set_ylim(lo[1], hi[1])
     ax.set_zlim(lo[2], hi[2])
     ax.set_box_aspect(tuple(hi - lo), zoom=0.85)
-    ax.set_xlabel(_AXIS_NAMES[h0])
-    ax.set_ylabel(_AXIS_NAMES[h1])
-    ax.set_zlabel(("" if sign > 0 else "-") + _AXIS_NAMES[up])
+    ax.set_xlabel(f"{_AXIS_NAMES[h0]} ({units})")
+    ax.set_ylabel(f"{_AXIS_NAMES[h1]} ({units})")
+    ax.set_zlabel(f"{'' if sign > 0 else '-'}{_AXIS_NAMES[up]} ({units})")
 
 
 def plot_information_sparsity(

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from ..errors import DatasetError, EifslamError
 from ..io.ply import read_ply
 from ..io.trajectory import Trajectory, read_tum
+from .metrics import GT_UNITS
 
 Array = NDArray[np.float64]
 
@@ -264,7 +265,7 @@ def _timing_section(out_dir: Path, frames: FrameLog | None, notes: list[str]) ->
 
 
 def _ground_truth_section(out_dir: Path, traj: Trajectory | None, gt: Trajectory,
-                          points: Array | None, colors: NDArray[np.uint8] | None
+                          points: Array | None, colors: NDArray[np.uint8] | None, units: str
                           ) -> tuple[_Section, dict[str, Any] | None]:
     """Sim(3)-aligned estimate and map against ground truth; also the evaluation figures."""
     from .metrics import evaluate
@@ -275,7 +276,7 @@ def _ground_truth_section(out_dir: Path, traj: Trajectory | None, gt: Trajectory
         sec.notes.append("No estimated trajectory to compare with the ground truth.")
         return sec, None
     try:
-        result = evaluate(traj, gt)
+        result = evaluate(traj, gt, units=units)
     except EifslamError as exc:
         sec.notes.append(f"Evaluation impossible: {exc}")
         return sec, None
@@ -283,7 +284,7 @@ def _ground_truth_section(out_dir: Path, traj: Trajectory | None, gt: Trajectory
     fig = _figure(figsize=(7.5, 6.5))
     plot_aligned_map(fig.add_subplot(), result, P, colors)
     sec.image = _save(fig, out_dir, "ground_truth.png")
-    sec.caption = (f"ATE RMSE {result.ate_rmse:.6g} after a Sim(3) alignment (scale "
+    sec.caption = (f"ATE RMSE {result.ate_rmse:.6g} {result.units} after a Sim(3) alignment (scale "
                    f"{result.sim3.scale:.6g}); the {len(P)} map features are moved by the "
                    f"same Sim(3). {result.n_matched} of {result.n_ground_truth} ground-truth "
                    f"poses matched.")
@@ -345,7 +346,8 @@ def _html(title: str, out_dir: Path, summary: dict[str, Any] | None, summary_not
     ]
     if evaluation is not None:
         parts.append(f'<p class="ate">ATE RMSE (Sim(3)-aligned): '
-                     f'<span id="ate-rmse">{evaluation["ate_rmse"]:.6g}</span></p>')
+                     f'<span id="ate-rmse">{evaluation["ate_rmse"]:.6g}</span> '
+                     f'{html.escape(str(evaluation.get("units", "")))}</p>')
     parts.append("<h2>Summary (report.json)</h2>")
     parts += [f'<p class="note">{html.escape(n)}</p>' for n in summary_notes]
     if summary is not None:
@@ -368,7 +370,7 @@ def _html(title: str, out_dir: Path, summary: dict[str, Any] | None, summary_not
 
 
 def write_report(out_dir: str | Path, ground_truth: Trajectory | None = None,
-                 title: str = "eifslam run") -> Path:
+                 title: str = "eifslam run", units: str = GT_UNITS) -> Path:
     """Write ``out_dir/report.html`` with its figures in ``out_dir/figures/``.
 
     Parameters
@@ -379,6 +381,7 @@ def write_report(out_dir: str | Path, ground_truth: Trajectory | None = None,
         aligned to it by a Sim(3) and drawn against it with its ATE, the map moved by
         the same Sim(3).
     title : page title.
+    units : name of the ground truth's length unit (``"m"`` for the data sets eifslam reads).
 
     Returns
     -------
@@ -411,7 +414,7 @@ def write_report(out_dir: str | Path, ground_truth: Trajectory | None = None,
     sections = _map_sections(out, traj, points, colors, map_notes)
     evaluation = None
     if ground_truth is not None:
-        gt_section, evaluation = _ground_truth_section(out, traj, ground_truth, points, colors)
+        gt_section, evaluation = _ground_truth_section(out, traj, ground_truth, points, colors, units)
         sections.append(gt_section)
     sections.append(_sparsity_section(out, info, info_notes))
     sections.append(_timing_section(out, frames, frame_notes))
