@@ -7,7 +7,7 @@ import argparse
 import sys
 
 from ..system.config import SlamConfig
-from .run import add_common_options, make_config
+from .run import add_common_options, announce, base_config, guard_outputs, make_config, provenance
 
 #: The demo's one departure from ``SlamConfig()``: a denser map than run's default
 #: features per image, because the box ratio is measured from the features on one small
@@ -33,16 +33,20 @@ def main(args: argparse.Namespace) -> int:
     from ..io import open_source
     from ..sim.scene import make_scene, render_scene
 
+    guard_outputs(args.out, args.force)
+    config = make_config(args, base_config(args, SlamConfig().replace(frontend={"max_features": DEMO_MAX_FEATURES})))
     scene = make_scene(n_frames=args.frames)
     data = args.out / "scene"
-    print(f"eifslam: rendering the built-in scene ({args.frames} images) into {data}", file=sys.stderr)
+    if not args.quiet:
+        print(f"eifslam: rendering the built-in scene ({args.frames} images) into {data}", file=sys.stderr)
     render_scene(scene, data, noise_sigma=args.noise, blur_sigma=args.blur)
     seq = open_source(data)
-    config = make_config(args, SlamConfig().replace(frontend={"max_features": DEMO_MAX_FEATURES}))
-    rep = run_to_folder(seq, config, args.out, max_frames=args.max_frames, html=not args.no_html)
+    announce(args, config)
+    rep = run_to_folder(seq, config, args.out, max_frames=args.max_frames, html=not args.no_html,
+                        extra=provenance(args, config), quiet=args.quiet, verbose=not args.quiet)
     if rep.get("frames_tracked", 0) >= 3:
         add_box_ratio(rep, args.out, scene)
-        if rep.get("box_ratio_estimated") is not None:
+        if rep.get("box_ratio_estimated") is not None and not args.quiet:
             print(f"eifslam: box width:length {rep['box_ratio_estimated']:.3f} (true {rep['box_ratio_true']:.2f}, "
                   f"{rep['box_ratio_points']} map features on its top face)", file=sys.stderr)
     return 0

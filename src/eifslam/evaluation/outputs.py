@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from .. import __version__
 from ..io import Trajectory, write_ply, write_tum
 from ..system.slam import Slam, TrackingState
 
@@ -59,6 +60,7 @@ def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
         detector=slam.config.frontend.detector, map_fraction=slam.config.frontend.map_fraction,
         stage_ms_median={s: _median([r.timings_ms[s] for r in res if s in r.timings_ms]) for s in stages},
         total_seconds=round(total_s, 3), fps=round(n / total_s, 3) if total_s > 0 else None,
+        eifslam_version=__version__, config=slam.config.to_dict(),
     )
     if slam.smoothing is not None:
         rep["smoothing"] = dict(passes=slam.smoothing.passes, step_norms=slam.smoothing.step_norms)
