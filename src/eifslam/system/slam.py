@@ -73,6 +73,24 @@ class TrackResult:
     map_features: int = 0
     state_dim: int = 0
 
+    @property
+    def T_wc(self) -> Array | None:
+        """(4, 4) camera-to-world transform ``[[R_wc, p], [0, 1]]`` of this result (world
+        units), or None when the frame has no pose."""
+        return None if self.position is None else pose_matrix(self.position, self.quat_wxyz)
+
+
+def pose_matrix(p: Array, q_wxyz: Array) -> Array:
+    """(4, 4) homogeneous camera-to-world transform from a centre ``p (3,)`` and ``q_wc
+    (4,)`` ``[w, x, y, z]``: maps camera-frame points (x right, y down, z forward) to the
+    world frame."""
+    from ..geometry.rotations import quat_to_rotmat
+
+    T = np.eye(4)
+    T[:3, :3] = quat_to_rotmat(np.asarray(q_wxyz, float))
+    T[:3, 3] = np.asarray(p, float)
+    return T
+
 
 class Slam:
     """Monocular SLAM with the exactly sparse EIF (ORB-SLAM's ``System``).
@@ -134,6 +152,13 @@ class Slam:
         order = np.argsort(ids)
         t = np.array([self._timestamps[i] for i in ids])[order]
         return t, P[order], Q[order]
+
+    def T_wc(self, frame_id: int) -> Array:
+        """(4, 4) camera-to-world transform of a tracked frame from the current estimate
+        (after smoothing or bundle adjustment: theirs). :class:`~eifslam.errors.EstimatorError`
+        when the frame has no pose."""
+        self.filter.complete_estimate()
+        return pose_matrix(*self.filter.pose(frame_id))
 
     def map(self) -> tuple[NDArray[np.int64], Array, NDArray[np.uint8]]:
         """Map feature ids ``(F,)``, positions ``(F, 3)`` and RGB colours ``(F, 3)``."""
