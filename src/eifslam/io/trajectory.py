@@ -4,7 +4,8 @@ A TUM trajectory file has one pose per line, ``timestamp tx ty tz qx qy qz qw``:
 camera-to-world pose (position of the camera centre in the world, orientation ``R_wc``)
 with the quaternion **scalar last**. Inside eifslam quaternions are scalar first
 (``[w, x, y, z]``, see :mod:`eifslam.geometry`); the conversion happens only here.
-Lines starting with ``#`` and blank lines are skipped. This is the format ``evo`` reads.
+Lines starting with ``#`` and blank lines are skipped. This is the format ``evo`` reads;
+:func:`write_tum` writes through evo's ``file_interface``.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from numpy.typing import NDArray
 
 from .files import read_text
 from ..errors import DatasetError
-from ..geometry.rotations import quat_normalize, quat_to_rotmat, quat_wxyz_to_xyzw, quat_xyzw_to_wxyz
+from ..geometry.rotations import quat_normalize, quat_to_rotmat, quat_xyzw_to_wxyz
 
 Array = NDArray[np.float64]
 
@@ -192,18 +193,30 @@ def write_tum(
     quats_wxyz : (N, 4) orientations ``R_wc`` as ``[w, x, y, z]``; written as ``qx qy qz qw``.
     header : comment written as the first line (``None`` for none).
 
+    The poses are written by evo (``file_interface.write_tum_trajectory_file``, full
+    precision), the tool the files are meant for. Reading stays here: evo's reader checks
+    the width of the first row only, refuses an empty file and names no line, where
+    :func:`parse_tum` names the file and line of every problem.
+
     Raises
     ------
     DatasetError
         Arrays of mismatched shapes, non-finite values or non-increasing timestamps.
     """
     traj = Trajectory(timestamps, positions, quats_wxyz)
-    q = quat_wxyz_to_xyzw(traj.quats_wxyz)
-    lines = [] if header is None else [f"# {header}"]
-    for t, p, qq in zip(traj.timestamps, traj.positions, q):
-        vals = " ".join(f"{v:.9f}" for v in (*p, *qq))
-        lines.append(f"{t:.9f} {vals}")
-    Path(path).write_text("\n".join(lines) + "\n")
+    try:
+        with open(path, "w") as fh:
+            if header is not None:
+                fh.write(f"# {header}\n")
+            if len(traj):
+                from evo.core.trajectory import PoseTrajectory3D
+                from evo.tools import file_interface
+
+                file_interface.write_tum_trajectory_file(fh, PoseTrajectory3D(
+                    positions_xyz=traj.positions, orientations_quat_wxyz=traj.quats_wxyz,
+                    timestamps=traj.timestamps))
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot write trajectory file ({exc})") from None
 
 
 def associate(
