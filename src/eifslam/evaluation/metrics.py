@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from evo.core import metrics as evo_metrics
 from evo.core import sync
 from evo.core.geometry import GeometryException, umeyama_alignment
 from evo.core.trajectory import PoseTrajectory3D
@@ -329,17 +330,22 @@ def evaluate(estimate: Trajectory, ground_truth: Trajectory, max_diff: float = 0
     p_gt, p_est = gt_s.positions_xyz, est_s.positions_xyz
     sim3 = align_sim3(p_est, p_gt)
     aligned = sim3.apply(p_est)
-    err = np.linalg.norm(aligned - p_gt, axis=1)
+    # ATE statistics: evo's APE on the translation part, as evo_ape computes them
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape.process_data((gt_s, PoseTrajectory3D(positions_xyz=aligned, orientations_quat_wxyz=gt_s.orientations_quat_wxyz,
+                                             timestamps=gt_s.timestamps)))
+    err = np.asarray(ape.error, dtype=np.float64)
+    stats = ape.get_all_statistics()
     path = float(np.sum(np.linalg.norm(np.diff(p_gt, axis=0), axis=1)))
     R_gt = np.asarray(gt_s.poses_se3)[:, :3, :3]
     R_est = np.asarray(est_s.poses_se3)[:, :3, :3]
     rot, dirs = _relative_errors(R_gt, p_gt, R_est, p_est)
-    rmse = float(np.sqrt(np.mean(err**2)))
+    rmse = float(stats["rmse"])
     return EvaluationResult(
         ate_rmse=rmse,
-        ate_mean=float(np.mean(err)),
-        ate_median=float(np.median(err)),
-        ate_max=float(np.max(err)),
+        ate_mean=float(stats["mean"]),
+        ate_median=float(stats["median"]),
+        ate_max=float(stats["max"]),
         ate_percent=100.0 * rmse / path if path > 0 else float("inf"),
         gt_path_length=path,
         tracked_fraction=m / n_gt,
