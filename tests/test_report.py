@@ -92,8 +92,10 @@ def test_full_report(tmp_path):
     for f in FIGURES:
         _assert_png(tmp_path / "figures" / f)
     # report.json figures, nested keys flattened, HTML escaped
-    assert re.search(r"<th>ate_rmse</th><td>0.123457</td>", text)
-    assert "<th>timing_ms.total</th><td>15.5</td>" in text
+    # readable labels with units, 4 significant digits, the exact value and the key beside
+    assert re.search(r'<th>ATE RMSE \(ground-truth units\)</th><td data-value="0.123456789">0.1235</td>'
+                     r'<td class="key">ate_rmse</td>', text)
+    assert '<th>timing ms: total</th><td data-value="15.5">15.5</td>' in text
     assert "fake &lt;seq&gt;" in text
     # no ground truth: no evaluation
     assert "ate-rmse" not in text and "ground_truth.png" not in text
@@ -110,7 +112,7 @@ def test_ground_truth_ate_is_zero(tmp_path):
     text = write_report(tmp_path, ground_truth=gt).read_text()
     ate = float(re.search(r'<span id="ate-rmse">([^<]+)</span>', text).group(1))
     assert 0.0 <= ate < 1e-6
-    scale = float(re.search(r"<th>sim3.scale</th><td>([^<]+)</td>", text).group(1))
+    scale = float(re.search(r'<th>Sim\(3\) scale</th><td data-value="([^"]+)">', text).group(1))
     assert scale == pytest.approx(s, rel=1e-6)
     assert "figures/ground_truth.png" in _img_sources(text)
     _assert_png(tmp_path / "figures" / "ground_truth.png")
@@ -215,3 +217,19 @@ def test_stage_times_and_subsample():
     plt.close(fig)
     idx = subsample_indices(30_000, 20_000, np.random.default_rng(0))
     assert len(idx) == 20_000 and len(np.unique(idx)) == 20_000 and np.all(np.diff(idx) > 0)
+
+
+def test_headlines_and_readable_tables(tmp_path):
+    rng = np.random.default_rng(3)
+    _make_run(tmp_path, rng)
+    rep = json.loads((tmp_path / "report.json").read_text())
+    rep.update(box_ratio_true=0.8, box_ratio_estimated=0.7912, config={"system": {"mode": "smooth"}},
+               ate_units="m", stage_ms_median={"detect": 12.3456})
+    (tmp_path / "report.json").write_text(json.dumps(rep))
+    text = write_report(tmp_path, title="eifslam demo").read_text()
+    assert '<p class="headline">Box width:length <span id="box-ratio">0.791</span> (true 0.80)</p>' in text
+    assert "<th>Median time per frame, detect (ms)</th>" in text and ">12.35</td>" in text
+    assert "<th>ATE RMSE (m)</th>" in text
+    # the configuration is a table of its own, folded away
+    assert text.index("<details>") < text.index('id="config-system.mode"') < text.index("</details>")
+    assert 'id="summary-config' not in text

@@ -303,13 +303,45 @@ def _flatten(d: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
     return rows
 
 
+#: Labels of report.json's keys in the page's tables ("{u}": the ground truth's unit).
+_LABELS = {
+    "frames": "Frames", "frames_tracked": "Frames tracked", "frames_lost": "Frames lost",
+    "map_features": "Map features", "state_dim": "State size (entries)",
+    "information_nnz": "Non-zeros of the information matrix", "mode": "Mode", "detector": "Detector",
+    "map_fraction": "Fraction of tracks in the map (Ωm)", "total_seconds": "Run time (s)",
+    "fps": "Frames per second", "ate_rmse": "ATE RMSE ({u})", "ate_percent": "ATE (% of path length)",
+    "ate_units": "Unit of lengths", "units": "Unit of lengths", "ate_mean": "ATE mean ({u})",
+    "ate_median": "ATE median ({u})", "ate_max": "ATE max ({u})",
+    "gt_path_length": "Ground-truth path length ({u})", "tracked_fraction": "Tracked fraction",
+    "n_ground_truth": "Ground-truth poses", "n_estimate": "Estimated poses", "n_matched": "Poses matched",
+    "box_ratio_true": "Box width:length, true", "box_ratio_estimated": "Box width:length, estimated",
+    "box_ratio_points": "Map features on the box's top face", "box_ratio_error_percent": "Box ratio error (%)",
+    "eifslam_version": "eifslam version", "command": "Command", "source": "Source", "stopped": "Stopped",
+    "sim3.scale": "Sim(3) scale", "sim3.rotation": "Sim(3) rotation", "sim3.translation": "Sim(3) translation ({u})",
+}
+_STATS = {"rmse": "RMSE", "mean": "mean", "median": "median", "max": "max"}
+
+
+def _label(key: str, units: str) -> str:
+    """A reader's name for a flattened report.json key."""
+    if key in _LABELS:
+        return _LABELS[key].format(u=units)
+    head, _, tail = key.partition(".")
+    if head == "stage_ms_median":
+        return f"Median time per frame, {tail} (ms)"
+    if head in ("rpe_rot_deg", "rpe_dir_deg") and tail in _STATS:
+        what = "rotation" if head == "rpe_rot_deg" else "translation direction"
+        return f"RPE {what} {_STATS[tail]} (°)"
+    return key.replace("_", " ").replace(".", ": ")
+
+
 def _format(value: Any) -> str:
     if value is None:
         return "n/a"
     if isinstance(value, bool):
         return str(value).lower()
     if isinstance(value, float):
-        return f"{value:.6g}"
+        return f"{value:.4g}"
     if isinstance(value, list):
         if len(value) <= 6 and all(isinstance(v, (int, float, str)) for v in value):
             return "[" + ", ".join(_format(v) for v in value) + "]"
@@ -317,10 +349,13 @@ def _format(value: Any) -> str:
     return str(value)
 
 
-def _table(rows: list[tuple[str, Any]], table_id: str) -> str:
+def _table(rows: list[tuple[str, Any]], table_id: str, units: str = GT_UNITS) -> str:
+    """Rows of (key, value): a readable label, the value to 4 significant digits (the full
+    value in ``data-value``) and the report.json key."""
     body = "\n".join(
-        f'<tr id="{table_id}-{html.escape(k, quote=True)}"><th>{html.escape(k)}</th>'
-        f"<td>{html.escape(_format(v))}</td></tr>"
+        f'<tr id="{table_id}-{html.escape(k, quote=True)}"><th>{html.escape(_label(k, units))}</th>'
+        f'<td data-value="{html.escape(json.dumps(v, default=str), quote=True)}">{html.escape(_format(v))}</td>'
+        f'<td class="key">{html.escape(k)}</td></tr>'
         for k, v in rows
     )
     return f'<table id="{table_id}">\n{body}\n</table>'
@@ -330,7 +365,8 @@ _CSS = """
 body { font-family: sans-serif; max-width: 1250px; margin: 2em auto; padding: 0 1em; color: #222; }
 table { border-collapse: collapse; margin: 0.5em 0 1.5em; font-size: 0.9em; }
 th, td { border: 1px solid #ccc; padding: 0.2em 0.6em; text-align: left; }
-td { font-family: monospace; }
+td { font-family: monospace; } td.key { color: #888; font-size: 0.85em; }
+.headline { font-size: 1.25em; }
 figure { margin: 0 0 2em; } img { max-width: 100%; border: 1px solid #eee; }
 figcaption, .note { color: #555; font-size: 0.9em; } .note { font-style: italic; }
 """
@@ -344,18 +380,27 @@ def _html(title: str, out_dir: Path, summary: dict[str, Any] | None, summary_not
         f"<h1>{html.escape(title)}</h1>",
         f"<p>Output folder: <code>{html.escape(str(out_dir))}</code></p>",
     ]
+    units = str((evaluation or {}).get("units") or (summary or {}).get("ate_units") or GT_UNITS)
     if evaluation is not None:
-        parts.append(f'<p class="ate">ATE RMSE (Sim(3)-aligned): '
-                     f'<span id="ate-rmse">{evaluation["ate_rmse"]:.6g}</span> '
-                     f'{html.escape(str(evaluation.get("units", "")))}</p>')
+        parts.append(f'<p class="ate headline">ATE RMSE (Sim(3)-aligned): '
+                     f'<span id="ate-rmse">{evaluation["ate_rmse"]:.6g}</span> {html.escape(units)}</p>')
+    box = (summary or {}).get("box_ratio_estimated")
+    if isinstance(box, (int, float)) and not isinstance(box, bool):
+        true = (summary or {}).get("box_ratio_true")
+        parts.append(f'<p class="headline">Box width:length <span id="box-ratio">{box:.3f}</span>'
+                     + (f" (true {true:.2f})" if isinstance(true, (int, float)) else "") + "</p>")
     parts.append("<h2>Summary (report.json)</h2>")
     parts += [f'<p class="note">{html.escape(n)}</p>' for n in summary_notes]
     if summary is not None:
-        parts.append(_table(_flatten(summary), "summary") if summary
+        shown = {k: v for k, v in summary.items() if k != "config"}
+        parts.append(_table(_flatten(shown), "summary", units) if summary
                      else '<p class="note">report.json is empty.</p>')
+        if isinstance(summary.get("config"), dict):
+            parts += ["<details><summary>Configuration of the run (report.json <code>config</code>)</summary>",
+                      _table(_flatten(summary["config"]), "config"), "</details>"]
     if evaluation is not None:
         parts += ["<h2>Evaluation against ground truth</h2>",
-                  _table(_flatten(evaluation), "evaluation")]
+                  _table(_flatten(evaluation), "evaluation", units)]
     for sec in sections:
         parts.append(f"<h2>{html.escape(sec.title)}</h2>")
         parts += [f'<p class="note">{html.escape(n)}</p>' for n in sec.notes]
