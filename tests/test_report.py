@@ -17,7 +17,7 @@ from eifslam.io.ply import write_ply
 from eifslam.io.trajectory import Trajectory, write_tum
 from eifslam.evaluation.report import parse_frames, read_frames, write_report
 
-FIGURES = ("map_top.png", "map_3d.png", "information_sparsity.png", "timing.png")
+FIGURES = ("map_top.png", "map_top_close.png", "map_3d.png", "information_sparsity.png", "timing.png")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
@@ -191,11 +191,39 @@ def test_sparsity_plot_counts_nonzeros_and_image_fallback():
     rng = np.random.default_rng(5)
     A = _spd(rng, 80)
     A.data[0] = 0.0  # a stored zero is not a non-zero
-    for max_markers in (10**6, 10):
+    for max_markers, image_size, note in ((10**6, 1000, ""), (10, 1000, " (binned: a black cell holds a non-zero "
+                                                                     "among 1 × 1 entries)"),
+                                          (10, 20, " (binned: a black cell holds a non-zero among 4 × 4 entries)")):
         fig, ax = plt.subplots()
-        plot_information_sparsity(ax, A, max_markers=max_markers)
-        assert ax.get_title() == f"nz = {A.count_nonzero()}"
+        plot_information_sparsity(ax, A, max_markers=max_markers, image_size=image_size)
+        assert ax.get_title() == f"nz = {A.count_nonzero()}{note}"
         plt.close(fig)
+
+
+def test_top_view_draws_camera_wedges_and_honours_limits():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from eifslam.evaluation.plots import plot_map_top
+
+    t = np.linspace(0, 2 * np.pi, 30, endpoint=False)
+    C = np.c_[np.cos(t), np.zeros(30), np.sin(t)]
+    # cameras looking at the centre, y down: R_wc columns (x, y, z) with z = -C
+    z = -C
+    y = np.tile([0.0, 1.0, 0.0], (30, 1))
+    R = np.stack([np.cross(y, z), y, z], axis=2)
+    P = np.r_[np.random.default_rng(0).normal(scale=0.1, size=(200, 3)), 50 * np.eye(3)]
+    fig, (a, b) = plt.subplots(1, 2)
+    plot_map_top(a, C, P, R_wc=R, frusta=10)
+    assert len(a.patches) == 10 and a.get_xlabel() == "x (map units)"
+    tip = a.patches[0].get_xy()
+    ahead = 0.5 * (tip[1] + tip[2]) - tip[0]
+    assert ahead @ -C[0, [0, 2]] > 0.9 * np.linalg.norm(ahead)  # the wedge opens where camera 0 looks
+    plot_map_top(b, C, P, R_wc=R, limits=(np.full(3, -1.5), np.full(3, 1.5)), frusta=0, units="m")
+    assert b.get_xlim() == (-1.5, 1.5) and len(b.patches) == 0 and b.get_ylabel() == "z (m)"
+    plt.close(fig)
 
 
 def test_stage_times_and_subsample():

@@ -119,6 +119,8 @@ def plot_map_top(
     point_size: float = 2.0,
     rng: np.random.Generator | None = None,
     units: str = MAP_UNITS,
+    limits: tuple[Array, Array] | None = None,
+    frusta: int = 24,
 ) -> None:
     """Top view of the camera trajectory over the map.
 
@@ -136,6 +138,9 @@ def plot_map_top(
     rng : generator for the subset (see :func:`subsample_indices`).
     units : name of the length unit of the positions, on the axes (default: the map's own
         unit, fixed by ``system.scale_distance`` between the first two poses).
+    limits : ``(lo, hi)`` (3,) corners of the region shown; default :func:`robust_limits`.
+    frusta : with ``R_wc``, draw the viewing wedge (optical axis and a 60-degree field of
+        view, cut at 6 % of the view's width) of this many evenly spaced cameras.
     """
     C = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -148,7 +153,10 @@ def plot_map_top(
         ax.plot(C[:, a], C[:, b], ".-", color=_TRAJ_COLOR, lw=1.0, ms=2, zorder=3,
                 label=f"cameras ({len(C)})")
         ax.plot(C[0, a], C[0, b], "o", color="k", ms=5, zorder=4, label="start")
-    lo, hi = robust_limits(C, P)
+    lo, hi = robust_limits(C, P) if limits is None else (np.asarray(limits[0]), np.asarray(limits[1]))
+    if R_wc is not None and len(C) and frusta > 0:
+        _draw_frusta(ax, C, np.asarray(R_wc, float).reshape(-1, 3, 3), (a, b), 0.06 * max(hi[a] - lo[a], hi[b] - lo[b]),
+                     frusta)
     ax.set_xlim(lo[a], hi[a])
     ax.set_ylim(lo[b], hi[b])
     ax.set_xlabel(f"{_AXIS_NAMES[a]} ({units})")
@@ -166,6 +174,18 @@ def _vertical_axis(R_wc: Array | None) -> tuple[int, float]:
             k = int(np.argmax(np.abs(down)))
             return k, -float(np.sign(down[k]))
     return 2, 1.0
+
+
+def _draw_frusta(ax: Any, C: Array, R: Array, axes: tuple[int, int], size: float, count: int) -> None:
+    """Viewing wedges of ``count`` evenly spaced cameras (centres ``C``, rotations ``R_wc``)
+    in the top view ``axes``: the camera-frame rays ``(±tan 30°, 0, 1)`` scaled to ``size``."""
+    a, b = axes
+    idx = np.unique(np.linspace(0, len(C) - 1, min(count, len(C))).round().astype(int))
+    rays = np.array([[-np.tan(np.radians(30)), 0.0, 1.0], [np.tan(np.radians(30)), 0.0, 1.0]]) * size
+    for k in idx:
+        left, right = C[k] + R[k] @ rays[0], C[k] + R[k] @ rays[1]
+        ax.fill([C[k, a], left[a], right[a]], [C[k, b], left[b], right[b]], color=_TRAJ_COLOR, alpha=0.25,
+                lw=0.6, zorder=2)
 
 
 def plot_map_3d(
@@ -241,7 +261,8 @@ def plot_information_sparsity(
         instead of one marker per entry.
     image_size : cells per side of that image.
 
-    The title is ``nz = <number of non-zeros>``.
+    The title is ``nz = <number of non-zeros>``, followed by the cell size when the
+    pattern is binned.
     """
     A = sp.coo_array(information)
     A.eliminate_zeros()
@@ -263,7 +284,10 @@ def plot_information_sparsity(
         if markersize is None:
             markersize = float(np.clip(200.0 / max(n_rows, n_cols, 1), 0.05, 3.0))
         ax.spy(A, markersize=markersize, color="k")
-    ax.set_title(f"nz = {nnz}")
+    title = f"nz = {nnz}"
+    if nnz > max_markers:
+        title += f" (binned: a black cell holds a non-zero among {cell} × {cell} entries)"
+    ax.set_title(title)
 
 
 def _stage_matrix(stage_ms: Mapping[str, Array], n: int) -> tuple[list[str], Array]:

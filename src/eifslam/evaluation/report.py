@@ -209,7 +209,20 @@ def _map_sections(out_dir: Path, traj: Trajectory | None, points: Array | None,
     fig = _figure(figsize=(7.5, 6.5))
     plot_map_3d(fig.add_subplot(projection="3d"), C, P, colors, R)
     view.image, view.caption = _save(fig, out_dir, "map_3d.png"), caption
-    return [top, view]
+    if len(C) < 2:
+        return [top, view]
+    # the map near the cameras: what they looked at, without the far features (walls,
+    # distant points) that set the extent of the full view
+    close = _Section("Trajectory and map, close-up (the region the cameras travelled, with a margin)")
+    lo, hi = C.min(0), C.max(0)
+    pad = 0.3 * max(float((hi - lo).max()), 1e-9)
+    lo, hi = lo - pad, hi + pad
+    inside = int(np.all((P >= lo) & (P <= hi), axis=1).sum()) if len(P) else 0
+    fig = _figure(figsize=(7.5, 6.5))
+    plot_map_top(fig.add_subplot(), C, P, colors, R, limits=(lo, hi))
+    close.image = _save(fig, out_dir, "map_top_close.png")
+    close.caption = f"{inside} of the {len(P)} map features lie in this region; camera wedges show where they looked."
+    return [top, close, view]
 
 
 def _sparsity_section(out_dir: Path, info: sp.csr_array | None, notes: list[str]) -> _Section:
