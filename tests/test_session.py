@@ -56,6 +56,11 @@ def test_a_loaded_session_continues_as_the_uninterrupted_run(scene_images, tmp_p
     assert (back.filter.information_matrix() != first.filter.information_matrix()).nnz == 0
     np.testing.assert_array_equal(back.map()[2], first.map()[2])
     assert back.frontend.frame_ids == first.frontend.frame_ids
+    fa, fb = first.frontend.state_dict(), back.frontend.state_dict()
+    assert fa["descriptors_float32"] and fb["descriptors"].dtype == np.uint8  # SIFT's floats, kept as bytes
+    for key in ("descriptors", "uv", "raw_ids", "last_frame"):
+        np.testing.assert_array_equal(fa[key], fb[key])
+    np.testing.assert_array_equal(back.frontend.frame(2).track_ids, first.frontend.frame(2).track_ids)
     # ... and tracking continues on it as it would have without the interruption
     _run(scene, images, cfg, range(5, 9), back)
     assert all(r.state is TrackingState.TRACKING for r in back.results[1:])

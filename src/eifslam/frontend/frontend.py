@@ -102,13 +102,18 @@ class FrontEnd:
 
         desc = [f.feats.descriptors for f in frames if f.feats.descriptors.size]
         width, dtype = (desc[0].shape[1], desc[0].dtype) if desc else (0, np.uint8)
+        D = cat(lambda f: f.feats.descriptors, (width,), dtype)
+        # OpenCV's SIFT descriptors are floats holding integers 0..255: kept as bytes (4x
+        # smaller), exactly
+        as_bytes = D.dtype == np.float32 and bool(np.all((D >= 0) & (D <= 255) & (D == np.round(D))))
         return {
+            "descriptors_float32": as_bytes,
             "order": np.array(self._order, np.int64),
             "n_keypoints": np.array([len(f.feats) for f in frames], np.int64),
             "matchable": np.array([f in self._desc for f in self._order], bool),
             "uv": cat(lambda f: f.feats.uv, (2,), float),
             "uv_raw": cat(lambda f: f.feats.uv_raw, (2,), float),
-            "descriptors": cat(lambda f: f.feats.descriptors, (width,), dtype),
+            "descriptors": D.astype(np.uint8) if as_bytes else D,
             "scale_px": cat(lambda f: f.feats.scale_px, (), float),
             "response": cat(lambda f: f.feats.response, (), float),
             "sign": cat(lambda f: f.feats.sign, (), np.int8),
@@ -138,6 +143,8 @@ class FrontEnd:
         N = int(nk.sum())
         uv, uv_raw = take(d, "uv", np.float64, (N, 2)), take(d, "uv_raw", np.float64, (N, 2))
         desc = take(d, "descriptors", (np.uint8, np.float32), (N, None))
+        if d.get("descriptors_float32") is True and desc.dtype == np.uint8:
+            desc = desc.astype(np.float32)
         scale, resp = take(d, "scale_px", np.float64, (N,)), take(d, "response", np.float64, (N,))
         sign, colors = take(d, "sign", np.int8, (N,)), take(d, "colors", np.uint8, (N, 3))
         want = (np.float32 if self.config.detector.float_descriptors else np.uint8, self._detector.descriptorSize())
