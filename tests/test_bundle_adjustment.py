@@ -118,5 +118,8 @@ def test_kitti_first_frames_ba_against_ground_truth():
     t, P, Q = slam.trajectory()
     ev = evaluate(Trajectory(t, P, Q), seq.ground_truth())
     assert 1e-4 < ev.ate_rmse < 0.1  # metres over ~11 m of road
-    # the trajectory read afterwards is BA's, not the filter's put back by the window
-    np.testing.assert_allclose(P, res.positions[np.argsort(res.frame_ids)], atol=1e-12)
+    # the keyframes' poses read afterwards are BA's, not the filter's put back by the window
+    # (the frames between keyframes are re-localised on BA's map)
+    kf = np.array([r.keyframe for r in slam.results if r.position is not None])
+    assert kf.sum() == len(res.frame_ids) >= 5
+    np.testing.assert_allclose(P[kf], res.positions[np.argsort(res.frame_ids)], atol=1e-12)

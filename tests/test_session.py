@@ -42,13 +42,18 @@ def test_a_loaded_session_continues_as_the_uninterrupted_run(scene_images, tmp_p
     scene, images = scene_images
     cfg = SlamConfig().replace(system={"recovery": recovery})
     whole = _run(scene, images, cfg, range(9))
-    first = _run(scene, images, cfg, range(5))
-    path = tmp_path / "five.npz"
+    first = _run(scene, images, cfg, range(6))
+    path = tmp_path / "six.npz"
     first.save(path)
     assert zipfile.is_zipfile(path)
     back = Slam.load(path)
     # what was saved comes back
-    assert back.config == cfg and back.camera == scene.camera and back.n_frames == 5
+    assert back.config == cfg and back.camera == scene.camera and back.n_frames == 6
+    assert len(first.keyframes) >= 1 and not first.results[5].keyframe  # a frame between keyframes
+    assert [r.keyframe for r in back.results] == [r.keyframe for r in first.results]
+    ka, kb = first.keyframes.poses(), back.keyframes.poses()
+    assert ka[0] == kb[0] and np.array_equal(ka[1], kb[1]) and back.keyframes.last == first.keyframes.last
+    np.testing.assert_array_equal(back.T_wc(5), first.T_wc(5))
     assert [r.state for r in back.results] == [r.state for r in first.results]
     np.testing.assert_array_equal(_poses(back), _poses(first))
     np.testing.assert_array_equal(back.results[3].covariance, first.results[3].covariance)
@@ -62,7 +67,7 @@ def test_a_loaded_session_continues_as_the_uninterrupted_run(scene_images, tmp_p
         np.testing.assert_array_equal(fa[key], fb[key])
     np.testing.assert_array_equal(back.frontend.frame(2).track_ids, first.frontend.frame(2).track_ids)
     # ... and tracking continues on it as it would have without the interruption
-    _run(scene, images, cfg, range(5, 9), back)
+    _run(scene, images, cfg, range(6, 9), back)
     assert all(r.state is TrackingState.TRACKING for r in back.results[1:])
     assert back.filter.layout.n_features == whole.filter.layout.n_features
     if recovery == "full":

@@ -68,3 +68,48 @@ def localise_pose(
     if inl.sum() < min_inliers:
         return None
     return p, q, inl
+
+
+def map_pose_covariance(camera: PinholeCamera, p: Array, q: Array, X: Array, sigma_px: float) -> Array | None:
+    """Covariance of a pose localised on known map features, the map taken as exact.
+
+    The inverse of the Gauss-Newton information ``sum J^T J / sigma_px^2`` of the ``Zm``
+    of ``X`` with respect to ``[p, dtheta]`` (``dtheta``, rad, the right-multiplied rotation
+    error in the camera frame, ``R_true = R_est @ Exp(dtheta)``, as in
+    :func:`~eifslam.estimation.state.pose_tangent_covariance`). It is conditional on the
+    map, so it leaves out the map's own uncertainty.
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+    p, q : (3,), (4,) camera centre (world frame) and ``q_wc``.
+    X : (N, 3) world points used (the inliers).
+    sigma_px : float
+        Standard deviation of a pixel measurement.
+
+    Returns
+    -------
+    (6, 6) covariance of ``[p, dtheta]``, or None when the information is singular.
+    """
+    from ..geometry.rotations import quat_left_matrix
+
+    q = quat_normalize(np.asarray(q, float))
+    N = len(X)
+    if N < 3:
+        return None
+    c = camera
+    _, Jp, _, z = models.feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X,
+                                       c.fx, c.fy, c.cx, c.cy)
+    Jp = Jp[z > 0]
+    E = np.zeros((7, 6))  # [dp, dtheta] -> [dp, dq], dq = q ⊗ [0, dtheta / 2]
+    E[:3, :3] = np.eye(3)
+    E[3:, 3:] = 0.5 * quat_left_matrix(q)[:, 1:]
+    J = Jp @ E
+    A = np.einsum("nij,nik->jk", J, J) / sigma_px**2
+    try:
+        C = np.linalg.inv(A)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(C)) or np.min(np.linalg.eigvalsh(0.5 * (C + C.T))) <= 0:
+        return None
+    return 0.5 * (C + C.T)

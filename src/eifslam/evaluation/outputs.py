@@ -39,7 +39,7 @@ def frame_rows(slam: Slam) -> list[dict[str, Any]]:
     for r in slam.results:
         rows.append(dict(frame=r.frame_id, timestamp=r.timestamp, state=r.state.value, reason=r.reason,
                          reference=r.reference, ms={k: round(v, 3) for k, v in r.timings_ms.items()},
-                         state_dim=r.state_dim, map_features=r.map_features))
+                         state_dim=r.state_dim, map_features=r.map_features, keyframe=r.keyframe))
     return rows
 
 
@@ -55,6 +55,7 @@ def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
     stages = sorted({k for r in res for k in r.timings_ms})
     rep: dict[str, Any] = dict(
         frames=n, frames_tracked=int(tracked), frames_lost=int(n - tracked),
+        keyframes=int(sum(r.keyframe and r.position is not None for r in res)),
         map_features=slam.filter.layout.n_features, state_dim=slam.filter.dim,
         information_nnz=int(I.nnz), mode=slam.config.system.mode,
         detector=slam.config.frontend.detector, map_fraction=slam.config.frontend.map_fraction,

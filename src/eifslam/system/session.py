@@ -11,7 +11,8 @@ The file is an ``.npz`` archive (a zip of ``.npy`` arrays) that holds nothing bu
 Each part says what it keeps (``state_dict()``) and takes it back checked
 (``load_state_dict(d)``): the filter (layout, estimate, ``I`` as CSC arrays, ``i``,
 priors, stored measurements; the incremental window is rebuilt from ``I`` at the next
-frame), the front end (keypoints, descriptors, tracks), the tracker and the mapper.
+frame), the front end (keypoints, descriptors, tracks), the tracker, the mapper and the
+keyframe step (the frames localised on the map between keyframes).
 Loading never unpickles (``np.load(..., allow_pickle=False)``) and never trusts a size:
 each member's header is read first and its declared shape checked against the bytes it
 holds. A foreign, truncated or crafted file, or one of another version, gives one
@@ -80,6 +81,7 @@ def save_session(slam: "Slam", path: str | Path) -> None:
         "frontend": slam.frontend.state_dict(),
         "tracker": slam.tracker.state_dict(),
         "mapper": slam.mapper.state_dict(),
+        "keyframes": slam.keyframes.state_dict(),
     }
     arrays: dict[str, np.ndarray] = {}
     doc = _split(state, "", arrays)
@@ -136,6 +138,7 @@ def _pack_results(results: "list[TrackResult]") -> dict:
         "timings_ms": [{k: float(v) for k, v in r.timings_ms.items()} for r in results],
         "map_features": np.array([r.map_features for r in results], np.int64),
         "state_dim": np.array([r.state_dim for r in results], np.int64),
+        "keyframe": np.array([r.keyframe for r in results], bool),
     }
 
 
@@ -250,12 +253,15 @@ def _build(doc: Mapping[str, Any]) -> "Slam":
     slam.frontend.load_state_dict(sub(doc, "frontend"))
     slam.tracker.load_state_dict(sub(doc, "tracker"))
     slam.mapper.load_state_dict(sub(doc, "mapper"))
+    slam.keyframes.load_state_dict(sub(doc, "keyframes"))
     n = len(results)
     frames, poses = np.array(slam.frontend.frame_ids, np.int64), np.array(slam.filter.layout.pose_ids, np.int64)
     waiting = doc.get("waiting")
     if not (isinstance(waiting, list) and all(isinstance(j, int) and not isinstance(j, bool) for j in waiting)):
         raise SessionError("entry 'waiting' must be a list of frame ids")
-    for what, ids in (("front end", frames), ("filter", poses), ("waiting", np.array(waiting, np.int64))):
+    between = np.array(slam.keyframes.poses()[0], np.int64)
+    for what, ids in (("front end", frames), ("filter", poses), ("waiting", np.array(waiting, np.int64)),
+                      ("keyframe step", between)):
         if ids.size and (ids.min() < 0 or ids.max() >= n):
             raise SessionError(f"the {what} holds a frame the results do not")
     if not np.all(np.isin(poses, frames)):
@@ -276,6 +282,7 @@ def _unpack_results(d: Mapping[str, Any]) -> "list[TrackResult]":
     pos, quat = take(d, "position", np.float64, (n, 3)), take(d, "quat_wxyz", np.float64, (n, 4))
     cov = take(d, "covariance", np.float64, (n, 6, 6))
     ref, mf, sd = take_ids(d, "reference", n, -1), take_ids(d, "map_features", n), take_ids(d, "state_dim", n)
+    kf = take(d, "keyframe", bool, (n,))
     lists = {k: d.get(k) for k in ("state", "reason", "timings_ms")}
     if not all(isinstance(v, list) and len(v) == n for v in lists.values()):
         raise SessionError("results 'state', 'reason' and 'timings_ms' must be lists, one per frame")
@@ -289,5 +296,5 @@ def _unpack_results(d: Mapping[str, Any]) -> "list[TrackResult]":
         out.append(TrackResult(k, float(ts[k]), states[st], pos[k].copy() if has_pose[k] else None,
                                quat[k].copy() if has_pose[k] else None, cov[k].copy() if has_cov[k] else None,
                                reason, None if ref[k] < 0 else int(ref[k]), {str(a): float(b) for a, b in tm.items()},
-                               int(mf[k]), int(sd[k])))
+                               int(mf[k]), int(sd[k]), bool(kf[k])))
     return out

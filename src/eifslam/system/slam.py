@@ -28,6 +28,7 @@ from ..estimation.smoothing import SmoothingReport, recover_scale, smooth
 from ..geometry.camera import PinholeCamera
 from .config import Mode, SlamConfig
 from .finishing import FinishReport, bundle_adjust_slam
+from .keyframes import Keyframes
 from .mapping import Mapper
 from .session import load_session, save_session
 from .tracking import Tracker
@@ -57,8 +58,11 @@ class TrackResult:
     covariance : (6, 6) covariance of ``[p, dtheta]`` (see
         :meth:`InformationFilter.pose_covariance`), or None.
     reason : why the frame is lost / initialising ("" when tracking).
-    reference : frame id of the reference pose, or None.
+    reference : frame id of the reference pose (for a frame between keyframes, the last
+        keyframe), or None.
     timings_ms : per-stage milliseconds.
+    keyframe : whether the frame is a state of the filter (False: localised on the map
+        between keyframes, :mod:`eifslam.system.keyframes`).
     """
 
     frame_id: int
@@ -72,6 +76,7 @@ class TrackResult:
     timings_ms: dict[str, float] = field(default_factory=dict)
     map_features: int = 0
     state_dim: int = 0
+    keyframe: bool = True
 
     @property
     def T_wc(self) -> Array | None:
@@ -127,11 +132,14 @@ class Slam:
             camera, self.config.filter, recovery=self.config.system.recovery, window=self.config.system.window)
         self.mapper = Mapper(camera, self.config, self.frontend, self.filter)
         self.tracker = Tracker(camera, self.config, self.frontend, self.filter, self.mapper)
+        self.keyframes = Keyframes(camera, self.config, self.frontend, self.filter)
         self.results: list[TrackResult] = []
         self.smoothing: SmoothingReport | None = None
         self.bundle_adjustment: BAResult | None = None
         self._timestamps: dict[int, float] = {}
         self._waiting: list[int] = []  # frames that waited for the first baseline
+        self._keyframe_why = ""  # why the frame being tracked became a keyframe
+        self._map_pose = None  # its map pose, should Algorithm 1 fail to place it
 
     # -- queries ------------------------------------------------------------------
     @property
@@ -149,14 +157,20 @@ class Slam:
         tracked frame, in frame order, from the current estimate."""
         self.filter.complete_estimate()
         ids, P, Q = self.filter.poses()
-        order = np.argsort(ids)
+        mids, MP, MQ = self.keyframes.poses()
+        ids = list(ids) + mids
+        P, Q = np.concatenate([P, MP]), np.concatenate([Q, MQ])
+        order = np.argsort(ids, kind="stable")
         t = np.array([self._timestamps[i] for i in ids])[order]
         return t, P[order], Q[order]
 
     def T_wc(self, frame_id: int) -> Array:
         """(4, 4) camera-to-world transform of a tracked frame from the current estimate
         (after smoothing or bundle adjustment: theirs). :class:`~eifslam.errors.EstimatorError`
-        when the frame has no pose."""
+        when the frame has no pose. A frame between keyframes has the pose the map gave it."""
+        mp = self.keyframes.get(frame_id)
+        if mp is not None:
+            return pose_matrix(mp.p, mp.q)
         self.filter.complete_estimate()
         return pose_matrix(*self.filter.pose(frame_id))
 
@@ -180,12 +194,17 @@ class Slam:
         """
         k = self.n_frames
         ts = float(k if timestamp is None else timestamp)
+        self._keyframe_why, self._map_pose = "", None
         t0 = time.perf_counter()
         fr = self.frontend.add_frame(image, k)
         timings = dict(fr.timings_ms)
         self._timestamps[k] = ts
         if fr.n_features == 0 and not fr.ok:
             return self._record(TrackResult(k, ts, self._lost_state(), reason=fr.reason, timings_ms=timings), t0)
+        if self.keyframes.enabled and self.filter.layout.n_poses >= 2 and not self._waiting:
+            res = self._between_keyframes(k, ts, timings)
+            if res is not None:
+                return self._record(res, t0)
         if self.filter.layout.n_poses == 0:
             self.filter.add_pose(k, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
             self.filter.fix_pose(k)
@@ -216,13 +235,38 @@ class Slam:
             return self._record(TrackResult(k, ts, self._lost_state(), reason=f"lost: {exc}", timings_ms=timings), t0)
         p, q = self.filter.pose(k)
         cov = self.filter.pose_covariance(k)
-        res = TrackResult(k, ts, TrackingState.TRACKING, p, q, cov, reference=rp.measurement.i, timings_ms=timings)
+        res = TrackResult(k, ts, TrackingState.TRACKING, p, q, cov, reason=self._keyframe_why,
+                          reference=rp.measurement.i, timings_ms=timings)
         return self._record(res, t0)
 
+    def _between_keyframes(self, k: int, ts: float, timings: dict[str, float]) -> TrackResult | None:
+        """Frame *k* localised on the map, when it need not be a keyframe; None otherwise
+        (why it must be one becomes the reason of its :class:`TrackResult`)."""
+        due = self.keyframes.due(ts)
+        if due is not None:  # a keyframe whatever the map says: skip the map localisation
+            self._keyframe_why = f"keyframe: {due}"
+            return None
+        t1 = time.perf_counter()
+        prev = next((r for r in reversed(self.results) if r.position is not None), None)
+        p0, q0 = (prev.position, prev.quat_wxyz) if prev is not None else self.filter.pose(self.keyframes.last)
+        mp = self.keyframes.localise(k, p0, q0)
+        timings["localise"] = 1e3 * (time.perf_counter() - t1)
+        why = "the map alone does not place it" if mp is None else self.keyframes.keyframe_reason(mp, ts)
+        if why is not None:
+            self._keyframe_why = f"keyframe: {why}"
+            self._map_pose = mp  # kept if Algorithm 1 cannot place the frame
+            return None
+        return self._map_result(mp, ts, "", timings)
+
+    def _map_result(self, mp, ts: float, reason: str, timings: dict[str, float]) -> TrackResult:
+        """The result of a frame kept at its map pose ``mp`` (between keyframes)."""
+        self.keyframes.add(mp)
+        return TrackResult(mp.frame_id, ts, TrackingState.TRACKING, mp.p.copy(), mp.q.copy(), mp.covariance,
+                           reason=reason, reference=mp.reference, timings_ms=timings, keyframe=False)
+
     def _untracked(self) -> list[int]:
-        """Frames (after the first) that have no pose in the state, in frame order."""
-        return [r.frame_id for r in self.results
-                if r.frame_id > 0 and not self.filter.layout.has_pose(r.frame_id)]
+        """Frames (after the first) that have no pose, in frame order."""
+        return [r.frame_id for r in self.results if r.frame_id > 0 and r.position is None]
 
     def _retry(self, j: int, reason: str, relative: bool = True) -> bool:
         """Localise an earlier frame *j* that has no pose (:meth:`Tracker.place_late`). On
@@ -247,7 +291,14 @@ class Slam:
 
     def _record(self, res: TrackResult, t0: float) -> TrackResult:
         """Store a frame's result (and localise the frames that waited for the map)."""
+        mp = self._map_pose
+        if res.position is None and mp is not None and mp.frame_id == res.frame_id:
+            # a keyframe that Algorithm 1 could not place keeps the pose the map gave it
+            res = self._map_result(mp, res.timestamp, f"{self._keyframe_why}; {res.reason}; kept its map pose",
+                                   res.timings_ms)
         self.results.append(res)
+        if res.keyframe and res.position is not None and self.filter.layout.has_pose(res.frame_id):
+            self.keyframes.note_keyframe(res.frame_id, res.timestamp)
         if res.position is None and res.state is TrackingState.INITIALISING and res.frame_id > 0:
             self._waiting.append(res.frame_id)
         elif res.state is TrackingState.TRACKING and self._waiting and self.filter.layout.n_poses >= 2:
@@ -328,11 +379,33 @@ class Slam:
                 rep.ba = self.bundle_adjust()
             except EifslamError as exc:
                 rep.failures.append(f"bundle adjustment failed: {exc}")
+        self.refine_between_keyframes()
         return rep
 
+    def refine_between_keyframes(self) -> int:
+        """Re-localise the frames between keyframes on the current map (the last step of
+        :meth:`finish`) and update their :class:`TrackResult`; returns how many there are."""
+        if len(self.keyframes) == 0:
+            return 0
+        self.filter.complete_estimate()
+        for mp in self.keyframes.refine():
+            old = self.results[mp.frame_id]
+            self.results[mp.frame_id] = TrackResult(
+                old.frame_id, old.timestamp, old.state, mp.p.copy(), mp.q.copy(), mp.covariance, old.reason,
+                old.reference, old.timings_ms, old.map_features, old.state_dim, keyframe=False)
+        return len(self.keyframes)
+
     def set_scale(self, a: tuple[str, int], b: tuple[str, int], length: float) -> float:
-        """Scale recovery (paper V): make the distance between two states ``length``."""
-        return recover_scale(self.filter, a, b, length)
+        """Scale recovery (paper V): make the distance between two states ``length``
+        (the frames between keyframes are rescaled with the map)."""
+        s = recover_scale(self.filter, a, b, length)
+        self.keyframes.rescale(s)
+        for r in self.results:
+            if r.position is not None and not r.keyframe:
+                mp = self.keyframes.get(r.frame_id)
+                if mp is not None:
+                    r.position, r.covariance = mp.p.copy(), mp.covariance
+        return s
 
     # -- sessions -----------------------------------------------------------------
     @property

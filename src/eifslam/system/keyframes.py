@@ -1,0 +1,254 @@
+"""Keyframes: which frames become states of the filter, and the pose of every other frame.
+
+The paper keeps "poses with a large baseline". Here a frame after the map exists is first
+localised on the known map features it sees (pose only, a few robust Gauss-Newton steps:
+:func:`~eifslam.estimation.localisation.localise_pose`). It becomes a keyframe, and goes
+through Algorithm 1 (relative pose ``ZR``/``ZT`` to the last keyframes, ``Zm`` fused, new
+features triangulated), when one of these measured quantities says so:
+
+* that localisation failed or fits the map poorly (inlier fraction below
+  ``system.map_inlier_fraction``): the map alone cannot place the frame;
+* the median parallax of the map features it shares with the last keyframe reached
+  ``system.keyframe_parallax`` (by default the parallax a new map feature needs, so that
+  tracks first seen at the last keyframe can be triangulated now);
+* it sees fewer than ``system.keyframe_min_tracked`` of the map features the last keyframe
+  saw (the view moves on);
+* ``system.keyframe_max_interval_s`` seconds passed since the last keyframe.
+
+Every other frame keeps the map pose and its covariance given the map
+(:func:`~eifslam.estimation.localisation.map_pose_covariance`); it is not a state, so the
+filter grows with the keyframes only, and the Ωp/Ωm split and the relative poses stay as
+the paper has them, between keyframes. The front end still tracks every frame, so tracks
+run through the frames in between. :meth:`Keyframes.refine` re-localises the frames in
+between on the final map (after smoothing or bundle adjustment).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..estimation.localisation import localise_pose, map_pose_covariance
+from ..geometry.camera import PinholeCamera
+from .config import SlamConfig
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+__all__ = ["MapPose", "Keyframes"]
+
+
+@dataclass
+class MapPose:
+    """A frame localised on the map (not a state of the filter).
+
+    Attributes
+    ----------
+    frame_id : int
+    reference : int
+        The last keyframe when it was tracked.
+    p : (3,) camera centre, world frame.
+    q : (4,) orientation ``q_wc``.
+    covariance : (6, 6) covariance of ``[p, dtheta]`` given the map.
+    track_ids : (N,) the known map features it was localised on.
+    uv : (N, 2) their pixels in this frame.
+    inlier_fraction : float
+    parallax_deg : float
+        Median parallax, degrees, of the map features it shares with the reference.
+    tracked_fraction : float
+        Fraction of the reference keyframe's map features this frame sees.
+    """
+
+    frame_id: int
+    reference: int
+    p: Array
+    q: Array
+    covariance: Array
+    track_ids: IntArray
+    uv: Array
+    inlier_fraction: float
+    parallax_deg: float
+    tracked_fraction: float
+
+
+def median_parallax_deg(X: Array, c_a: Array, c_b: Array) -> float:
+    """Median angle, degrees, between the rays from camera centres ``c_a`` and ``c_b``
+    (3,) to the points ``X`` (N, 3); 0 for no points."""
+    if len(X) == 0:
+        return 0.0
+    a, b = X - c_a, X - c_b
+    cos = np.einsum("ij,ij->i", a, b) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-300)
+    return float(np.degrees(np.median(np.arccos(np.clip(cos, -1.0, 1.0)))))
+
+
+class Keyframes:
+    """The keyframe decision and the poses of the frames in between.
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+    config : SlamConfig
+    frontend : object
+        The front end (``map_observations``).
+    backend : object
+        The estimator (``layout``, ``x``, ``pose``).
+    """
+
+    def __init__(self, camera: PinholeCamera, config: SlamConfig, frontend, backend) -> None:
+        self.camera = camera
+        self.config = config
+        self.frontend = frontend
+        self.filter = backend
+        self.last: int | None = None
+        self._last_time = 0.0
+        self._last_seen: IntArray = np.zeros(0, np.int64)
+        self._poses: dict[int, MapPose] = {}
+
+    # -- sessions -----------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """What a session keeps: the reference keyframe, its time and map features, and
+        every map pose (fields of :class:`MapPose` as arrays, observations concatenated)."""
+        mps = [self._poses[k] for k in sorted(self._poses)]
+        return {
+            "last": self.last, "last_time": float(self._last_time), "last_seen": self._last_seen.copy(),
+            "frame_id": np.array([m.frame_id for m in mps], np.int64),
+            "reference": np.array([m.reference for m in mps], np.int64),
+            "p": np.array([m.p for m in mps], float).reshape(-1, 3),
+            "q": np.array([m.q for m in mps], float).reshape(-1, 4),
+            "covariance": np.array([m.covariance for m in mps], float).reshape(-1, 6, 6),
+            "n_obs": np.array([len(m.track_ids) for m in mps], np.int64),
+            "track_ids": np.concatenate([m.track_ids for m in mps]).astype(np.int64) if mps else np.zeros(0, np.int64),
+            "uv": np.concatenate([m.uv for m in mps]).reshape(-1, 2).astype(float) if mps else np.zeros((0, 2)),
+            "figures": np.array([[m.inlier_fraction, m.parallax_deg, m.tracked_fraction] for m in mps],
+                                float).reshape(-1, 3),
+        }
+
+    def load_state_dict(self, d) -> None:
+        """Restore :meth:`state_dict`, checked (:class:`~eifslam.errors.SessionError`)."""
+        from ..errors import SessionError
+        from ..estimation.statedict import take, take_float, take_ids, take_int
+
+        last = d.get("last") if isinstance(d, dict) else None
+        last = None if last is None else take_int(d, "last", 0)
+        if last is not None and not self.filter.layout.has_pose(last):
+            raise SessionError(f"keyframe {last} is not a pose of the filter")
+        fid = take_ids(d, "frame_id")
+        m = len(fid)
+        ref, n_obs = take_ids(d, "reference", m), take_ids(d, "n_obs", m)
+        p, q = take(d, "p", np.float64, (m, 3)), take(d, "q", np.float64, (m, 4))
+        cov, fig = take(d, "covariance", np.float64, (m, 6, 6)), take(d, "figures", np.float64, (m, 3))
+        n = int(n_obs.sum())
+        tids, uv = take_ids(d, "track_ids", n), take(d, "uv", np.float64, (n, 2))
+        ends = np.cumsum(n_obs)
+        self.last, self._last_time, self._last_seen = last, take_float(d, "last_time"), take_ids(d, "last_seen").copy()
+        self._poses = {int(f): MapPose(int(f), int(r), pp.copy(), qq.copy(), c.copy(), tids[b - k:b].copy(),
+                                       uv[b - k:b].copy(), float(g[0]), float(g[1]), float(g[2]))
+                       for f, r, pp, qq, c, g, k, b in zip(fid, ref, p, q, cov, fig, n_obs, ends)}
+
+    # -- queries ------------------------------------------------------------------
+    @property
+    def enabled(self) -> bool:
+        """Whether frames between keyframes are kept out of the filter."""
+        return bool(self.config.system.keyframes)
+
+    def __len__(self) -> int:
+        """Number of frames localised on the map (not keyframes)."""
+        return len(self._poses)
+
+    def get(self, frame_id: int) -> MapPose | None:
+        """The map pose of a frame between keyframes, or None."""
+        return self._poses.get(int(frame_id))
+
+    def poses(self) -> tuple[list[int], Array, Array]:
+        """Frame ids, positions ``(M, 3)`` and quaternions ``(M, 4)`` of the frames between
+        keyframes, in frame order."""
+        ids = sorted(self._poses)
+        if not ids:
+            return [], np.zeros((0, 3)), np.zeros((0, 4))
+        return ids, np.array([self._poses[i].p for i in ids]), np.array([self._poses[i].q for i in ids])
+
+    # -- per frame ----------------------------------------------------------------
+    def note_keyframe(self, frame_id: int, timestamp: float) -> None:
+        """Frame ``frame_id`` (a pose of the filter) is the new reference keyframe."""
+        ids, _ = self.frontend.map_observations(frame_id)
+        self.last = int(frame_id)
+        self._last_time = float(timestamp)
+        self._last_seen = np.asarray(ids, np.int64)[self.filter.layout.has_features(ids)]
+
+    def localise(self, k: int, p0: Array, q0: Array) -> MapPose | None:
+        """Localise frame *k* on the known map features it sees, from the guess
+        ``(p0 (3,), q0 (4,))``; None when there are too few of them or it does not converge."""
+        filt, sysc = self.filter, self.config.system
+        if self.last is None or filt.layout.n_features == 0:
+            return None
+        ids, uv = self.frontend.map_observations(k)
+        known = filt.layout.has_features(ids)
+        if known.sum() < sysc.min_map_features:
+            return None
+        ids, uv = np.asarray(ids, np.int64)[known], uv[known]
+        X = filt.x[filt.layout.feature_columns(ids)]
+        sol = localise_pose(self.camera, p0, q0, X, uv, min_inliers=sysc.min_map_features,
+                            inlier_px=sysc.inlier_radius_px)
+        if sol is None:
+            return None
+        p, q, inl = sol
+        cov = map_pose_covariance(self.camera, p, q, X[inl], self.config.zm_sigma_px)
+        if cov is None:
+            return None
+        shared = np.isin(ids[inl], self._last_seen)
+        c_ref, _ = filt.pose(self.last)
+        return MapPose(int(k), self.last, p, q, cov, ids[inl], uv[inl], float(inl.mean()),
+                       median_parallax_deg(X[inl][shared], c_ref, p),
+                       float(shared.sum() / max(len(self._last_seen), 1)))
+
+    def due(self, timestamp: float) -> str | None:
+        """Why a frame at ``timestamp`` (s) must be a keyframe whatever it sees (too long
+        since the last keyframe), or None."""
+        dt = float(timestamp) - self._last_time
+        if dt >= self.config.system.keyframe_max_interval_s:
+            return f"{dt:.2g} s since keyframe {self.last}"
+        return None
+
+    def keyframe_reason(self, mp: MapPose, timestamp: float) -> str | None:
+        """Why the frame localised as ``mp`` must become a keyframe, or None when it need not."""
+        sysc = self.config.system
+        if mp.inlier_fraction < sysc.map_inlier_fraction:
+            return f"fits the map poorly ({mp.inlier_fraction:.0%} inliers)"
+        if mp.parallax_deg >= sysc.keyframe_parallax:
+            return f"parallax {mp.parallax_deg:.1f} deg to keyframe {mp.reference}"
+        if mp.tracked_fraction < sysc.keyframe_min_tracked:
+            return f"sees {mp.tracked_fraction:.0%} of keyframe {mp.reference}'s map features"
+        return self.due(timestamp)
+
+    def add(self, mp: MapPose) -> None:
+        """Keep ``mp`` as the pose of its frame."""
+        self._poses[mp.frame_id] = mp
+
+    # -- after the run ------------------------------------------------------------
+    def rescale(self, s: float) -> None:
+        """Multiply every position by ``s`` (scale recovery; the world origin is fixed):
+        positions scale by ``s``, their covariance block by ``s**2``, the cross block by ``s``."""
+        S = np.diag([s, s, s, 1.0, 1.0, 1.0])
+        for mp in self._poses.values():
+            mp.p = mp.p * s
+            mp.covariance = S @ mp.covariance @ S
+    def refine(self) -> list[MapPose]:
+        """Re-localise every frame between keyframes on the current map (from its pose
+        and the map observations it was localised on); a frame whose features left the
+        map, or whose pose no longer converges, keeps its pose. Returns the poses."""
+        filt, sysc = self.filter, self.config.system
+        for k, mp in self._poses.items():
+            known = filt.layout.has_features(mp.track_ids)
+            if known.sum() < sysc.min_map_features:
+                continue
+            X = filt.x[filt.layout.feature_columns(mp.track_ids[known])]
+            sol = localise_pose(self.camera, mp.p, mp.q, X, mp.uv[known], min_inliers=sysc.min_map_features,
+                                inlier_px=sysc.inlier_radius_px)
+            if sol is None:
+                continue
+            cov = map_pose_covariance(self.camera, sol[0], sol[1], X[sol[2]], self.config.zm_sigma_px)
+            if cov is not None:
+                mp.p, mp.q, mp.covariance = sol[0], sol[1], cov
+        return [self._poses[k] for k in sorted(self._poses)]

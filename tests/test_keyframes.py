@@ -1,0 +1,120 @@
+"""Keyframes: only keyframes enter the filter; the frames between are localised on the map."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from eifslam.errors import ConfigError
+from eifslam.evaluation.metrics import align_sim3
+from eifslam.estimation.localisation import map_pose_covariance
+from eifslam.geometry.rotations import quat_exp, quat_multiply, quat_to_rotmat
+from eifslam.sim.frontend import SyntheticFrontEnd
+from eifslam.sim.synthetic import corridor_scene, default_camera
+from eifslam.system.config import SlamConfig
+from eifslam.system.keyframes import MapPose, median_parallax_deg
+from eifslam.system.slam import Slam, TrackingState
+
+
+def test_map_pose_covariance_matches_finite_differences():
+    cam = default_camera()
+    rng = np.random.default_rng(0)
+    X = rng.uniform([-2, -2, 4], [2, 2, 8], (40, 3))
+    p, q = np.array([0.1, -0.2, 0.3]), quat_exp(np.array([0.05, -0.1, 0.02]))
+    sigma = 0.7
+    C = map_pose_covariance(cam, p, q, X, sigma)
+
+    def h(d):  # pixels at [p + dp, q ⊗ Exp(dtheta)]
+        Xc = (X - (p + d[:3])) @ quat_to_rotmat(quat_multiply(q, quat_exp(d[3:])))
+        return cam.project(Xc).ravel()
+
+    J = np.zeros((2 * len(X), 6))
+    for i in range(6):
+        d = np.zeros(6)
+        d[i] = 1e-6
+        J[:, i] = (h(d) - h(-d)) / 2e-6
+    ref = np.linalg.inv(J.T @ J) * sigma**2
+    assert np.max(np.abs(C - ref)) < 1e-6 * np.max(np.abs(ref))
+    assert map_pose_covariance(cam, p, q, X[:2], sigma) is None  # too few points
+
+
+def test_median_parallax():
+    X = np.array([[0.0, 0.0, 10.0], [1.0, 0.0, 10.0], [-1.0, 0.0, 10.0]])
+    a = median_parallax_deg(X, np.zeros(3), np.array([1.0, 0.0, 0.0]))
+    assert a == pytest.approx(np.degrees(np.arctan(0.1)), rel=0.02)
+    assert median_parallax_deg(np.zeros((0, 3)), np.zeros(3), np.ones(3)) == 0.0
+
+
+def aligned_errors(P: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Position errors ``(N,)`` after a Sim(3) alignment (monocular: scale is free)."""
+    return np.linalg.norm(align_sim3(P, truth).apply(P) - truth, axis=1)
+
+
+def run(keyframes: bool, frames: int = 40, seed: int = 2):
+    """A slow walk down the corridor (5 cm per frame, 10 frames per second)."""
+    sc = corridor_scene(frames, np.random.default_rng(seed), step=0.05, points_per_metre=30.0)
+    fe = SyntheticFrontEnd(sc, seed, map_fraction=0.6)
+    slam = Slam(sc.camera, fe.slam_config(system={"mode": "filter", "keyframes": keyframes}), frontend=fe)
+    for k in range(frames):
+        slam.track(k, 0.1 * k)
+    slam.finish()
+    return sc, slam
+
+
+def test_only_keyframes_enter_the_filter_and_every_frame_is_tracked():
+    sc, slam = run(keyframes=True)
+    res = slam.results
+    assert all(r.state is TrackingState.TRACKING for r in res[1:])
+    kf = [r.frame_id for r in res if r.keyframe]
+    between = [r.frame_id for r in res if not r.keyframe]
+    assert 4 <= len(kf) <= 30 and len(between) >= 10  # the slow walk needs few keyframes
+    assert sorted(slam.filter.layout.pose_ids) == kf  # keyframes, and only they, are states
+    t, P, Q = slam.trajectory()
+    assert len(t) == 40 and np.all(np.diff(t) > 0)
+    err = aligned_errors(P, sc.positions)
+    assert 1e-5 < err[between].max() < 0.05  # localised on the map, noisy but close
+    for j in between:  # a covariance given the map, as large as the error it admits
+        r = res[j]
+        assert r.covariance.shape == (6, 6) and np.all(np.linalg.eigvalsh(r.covariance) > 0)
+        assert r.reference in kf and r.reference < j
+    # every keyframe after the first says why it is one
+    assert all(r.reason.startswith("keyframe:") or r.frame_id < 3 for r in res if r.keyframe)
+
+
+def test_keyframes_cost_no_accuracy_against_every_frame_in_the_filter():
+    sc, slam_kf = run(keyframes=True)
+    _, slam_all = run(keyframes=False)
+    assert all(r.keyframe for r in slam_all.results)
+    assert slam_kf.filter.dim < 0.8 * slam_all.filter.dim
+    e_kf = aligned_errors(slam_kf.trajectory()[1], sc.positions)
+    e_all = aligned_errors(slam_all.trajectory()[1], sc.positions)
+    ate_kf, ate_all = np.sqrt(np.mean(e_kf**2)), np.sqrt(np.mean(e_all**2))
+    # the simulated pixel noise is independent from frame to frame, so the frames left out
+    # of the filter take real information with them (a few times less than sqrt(40 / 9) of
+    # the map's accuracy here); on images, where consecutive frames' errors are correlated,
+    # benchmarks/realtime.py measures the cost. Both runs must still be accurate.
+    assert 1e-4 < ate_all and 0.5 * ate_all < ate_kf < 5.0 * ate_all and ate_kf < 0.03
+
+
+def test_keyframe_rules():
+    sc, slam = run(keyframes=True, frames=12)
+    kfs = slam.keyframes
+    mp = MapPose(99, kfs.last, np.zeros(3), np.array([1.0, 0, 0, 0]), np.eye(6), np.zeros(0, np.int64),
+                 np.zeros((0, 2)), inlier_fraction=1.0, parallax_deg=0.1, tracked_fraction=1.0)
+    t_last = slam.results[kfs.last].timestamp
+    assert kfs.keyframe_reason(mp, t_last + 0.05) is None
+    assert "s since" in kfs.keyframe_reason(mp, t_last + 5.0)
+    mp.parallax_deg = 2.5
+    assert "parallax" in kfs.keyframe_reason(mp, t_last + 0.05)
+    mp.parallax_deg, mp.tracked_fraction = 0.1, 0.2
+    assert "sees" in kfs.keyframe_reason(mp, t_last + 0.05)
+    mp.tracked_fraction, mp.inlier_fraction = 1.0, 0.3
+    assert "fits the map poorly" in kfs.keyframe_reason(mp, t_last + 0.05)
+
+
+def test_keyframe_settings_are_checked():
+    for bad in ({"keyframe_min_tracked": 0.0}, {"keyframe_min_tracked": 1.5}, {"keyframe_parallax_deg": -1.0},
+                {"keyframe_max_interval_s": 0.0}, {"keyframes": "yes"}):
+        with pytest.raises(ConfigError):
+            SlamConfig.from_dict({"system": bad})
+    assert SlamConfig().system.keyframe_parallax == SlamConfig().system.min_feature_parallax_deg
