@@ -261,3 +261,31 @@ def test_headlines_and_readable_tables(tmp_path):
     # the configuration is a table of its own, folded away
     assert text.index("<details>") < text.index('id="config-system.mode"') < text.index("</details>")
     assert 'id="summary-config' not in text
+
+
+def test_sparsity_marks_pose_and_feature_blocks(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from eifslam.evaluation.plots import plot_information_sparsity
+
+    rng = np.random.default_rng(6)
+    isf = np.repeat(np.array([False, True, True, False, True]), [7, 3, 3, 7, 3])
+    fig, ax = plt.subplots()
+    plot_information_sparsity(ax, _spd(rng, len(isf)), is_feature=isf)
+    labels = sorted(t.get_text() for t in ax.get_legend().get_texts())
+    assert labels == ["feature entries (9)", "pose entries (14)"]
+    spans = {c.get_label(): c for c in ax.collections if c.get_label().endswith(")")}
+    assert len(spans["pose entries (14)"].get_paths()) == 2 and len(spans["feature entries (9)"].get_paths()) == 2
+    plt.close(fig)
+    # the report reads the layout beside information.npz; a layout of another size is a note
+    _make_run(tmp_path, rng)  # information.npz of 120 entries
+    (tmp_path / "state_layout.json").write_text(json.dumps({"kinds": "p" * 6 + "f" * 26}))
+    text = write_report(tmp_path).read_text()
+    assert "figures/information_sparsity.png" in text and "not marked" not in text
+    (tmp_path / "state_layout.json").write_text(json.dumps({"kinds": "p" * 6}))
+    assert "describes 42 entries, the matrix has 120" in write_report(tmp_path).read_text()
+    (tmp_path / "state_layout.json").write_text("[1, 2]")
+    assert "state_layout.json could not be read" in write_report(tmp_path).read_text()

@@ -43,7 +43,8 @@ def add_common_options(p: argparse.ArgumentParser, max_features: int | None = No
 
 
 #: Files an eifslam run writes into its output folder (the overwrite guard looks for them).
-OUTPUT_FILES = ("report.json", "trajectory.tum", "map.ply", "frames.json", "information.npz", "report.html")
+OUTPUT_FILES = ("report.json", "trajectory.tum", "map.ply", "frames.json", "information.npz", "state_layout.json",
+                "report.html")
 
 
 def guard_outputs(out: Path, force: bool) -> None:

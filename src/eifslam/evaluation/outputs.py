@@ -7,6 +7,8 @@ after a run and writes, into one folder,
 * ``map.ply``         map features with colours;
 * ``frames.json``     per-frame tracking state, stage milliseconds, state size;
 * ``information.npz`` the final information matrix (``scipy.sparse.save_npz``);
+* ``state_layout.json`` ``{"kinds": "pff..."}``: the states in order, a pose (7 entries)
+  or a feature (3), for the blocks of that matrix;
 * ``report.json``     the summary figures, with ATE when ground truth is given
   (ground truth is read here, for scoring only, after the estimate is final).
 
@@ -93,6 +95,8 @@ def write_outputs(slam: Slam, out_dir: str | Path, total_s: float, ground_truth:
     write_ply(out / "map.ply", X, cols)
     (out / "frames.json").write_text(json.dumps({"frames": frame_rows(slam)}, indent=1))
     sp.save_npz(out / "information.npz", slam.filter.information_matrix().tocsr())
+    kinds = "".join("f" if k.kind == "feature" else "p" for k in slam.filter.layout.order)
+    (out / "state_layout.json").write_text(json.dumps({"kinds": kinds}))  # the blocks of information.npz
     rep = summary(slam, total_s, ground_truth, extra)
     (out / "report.json").write_text(json.dumps(rep, indent=2, default=float))
     if html:

@@ -248,6 +248,7 @@ def plot_information_sparsity(
     markersize: float | None = None,
     max_markers: int = 1_000_000,
     image_size: int = 1000,
+    is_feature: NDArray[np.bool_] | None = None,
 ) -> None:
     """Sparsity pattern of the information matrix, as the paper's Figs. 1b and 3c.
 
@@ -260,6 +261,9 @@ def plot_information_sparsity(
         ``image_size`` × ``image_size`` cells (a cell is black when it holds a non-zero)
         instead of one marker per entry.
     image_size : cells per side of that image.
+    is_feature : (n,) bool, optional
+        Whether each entry of the state belongs to a map feature (else to a pose); the
+        pose and feature blocks are then marked by a strip under the pattern.
 
     The title is ``nz = <number of non-zeros>``, followed by the cell size when the
     pattern is binned.
@@ -284,10 +288,28 @@ def plot_information_sparsity(
         if markersize is None:
             markersize = float(np.clip(200.0 / max(n_rows, n_cols, 1), 0.05, 3.0))
         ax.spy(A, markersize=markersize, color="k")
+    if is_feature is not None and len(is_feature) == n_cols and n_cols:
+        _mark_blocks(ax, np.asarray(is_feature, bool))
     title = f"nz = {nnz}"
     if nnz > max_markers:
         title += f" (binned: a black cell holds a non-zero among {cell} × {cell} entries)"
     ax.set_title(title)
+
+
+def _mark_blocks(ax: Any, is_feature: NDArray[np.bool_]) -> None:
+    """A strip under a sparsity pattern: pose entries blue, feature entries orange."""
+    from matplotlib.transforms import blended_transform_factory
+
+    edges = np.flatnonzero(np.diff(is_feature.astype(np.int8))) + 1
+    starts, ends = np.r_[0, edges], np.r_[edges, len(is_feature)]
+    under = blended_transform_factory(ax.transData, ax.transAxes)
+    for feat, colour, what in ((False, "tab:blue", "pose"), (True, "tab:orange", "feature")):
+        sel = is_feature[starts] == feat
+        if sel.any():
+            ax.broken_barh(list(zip(starts[sel] - 0.5, ends[sel] - starts[sel])), (-0.04, 0.03), transform=under,
+                           color=colour, clip_on=False,
+                           label=f"{what} entries ({int((is_feature == feat).sum())})")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.05), ncol=2, fontsize="small", frameon=False)
 
 
 def _stage_matrix(stage_ms: Mapping[str, Array], n: int) -> tuple[list[str], Array]:

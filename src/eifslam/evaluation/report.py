@@ -25,6 +25,7 @@ from ..errors import DatasetError, EifslamError
 from ..io.ply import read_ply
 from ..io.trajectory import Trajectory, read_tum
 from .metrics import GT_UNITS
+from .report_tables import flatten as _flatten, table as _table
 
 Array = NDArray[np.float64]
 
@@ -225,7 +226,19 @@ def _map_sections(out_dir: Path, traj: Trajectory | None, points: Array | None,
     return [top, close, view]
 
 
-def _sparsity_section(out_dir: Path, info: sp.csr_array | None, notes: list[str]) -> _Section:
+def _read_layout(path: Path) -> NDArray[np.bool_]:
+    """Per state entry, whether it belongs to a feature, from ``state_layout.json``
+    (``{"kinds": "pff..."}``: one letter per state, a pose of 7 entries or a feature of 3)."""
+    data = json.loads(path.read_text())
+    kinds = data.get("kinds") if isinstance(data, dict) else None
+    if not isinstance(kinds, str) or set(kinds) - {"p", "f"}:
+        raise ValueError("'kinds' must be a string of 'p' and 'f'")
+    isf = np.frombuffer(kinds.encode(), np.uint8) == ord("f")
+    return np.repeat(isf, np.where(isf, 3, 7))
+
+
+def _sparsity_section(out_dir: Path, info: sp.csr_array | None, notes: list[str],
+                      is_feature: NDArray[np.bool_] | None = None) -> _Section:
     """Sparsity pattern of the final information matrix."""
     from .plots import plot_information_sparsity
 
@@ -236,7 +249,11 @@ def _sparsity_section(out_dir: Path, info: sp.csr_array | None, notes: list[str]
         sec.notes.append(f"The information matrix is empty ({info.shape[0]} × {info.shape[1]}).")
         return sec
     fig = _figure(figsize=(6.5, 6.5))
-    plot_information_sparsity(fig.add_subplot(), info)
+    if is_feature is not None and len(is_feature) != info.shape[0]:
+        sec.notes.append(f"state_layout.json describes {len(is_feature)} entries, the matrix has "
+                         f"{info.shape[0]}: the pose and feature blocks are not marked.")
+        is_feature = None
+    plot_information_sparsity(fig.add_subplot(), info, is_feature=is_feature)
     sec.image = _save(fig, out_dir, "information_sparsity.png")
     n = info.shape[0]
     nnz = int(sp.coo_array(info).count_nonzero())
@@ -302,76 +319,6 @@ def _ground_truth_section(out_dir: Path, traj: Trajectory | None, gt: Trajectory
                    f"same Sim(3). {result.n_matched} of {result.n_ground_truth} ground-truth "
                    f"poses matched.")
     return sec, result.to_dict()
-
-
-def _flatten(d: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
-    """Nested dictionaries as ``("a.b", value)`` rows."""
-    rows: list[tuple[str, Any]] = []
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict):
-            rows.extend(_flatten(v, key + ".") if v else [(key, "{}")])
-        else:
-            rows.append((key, v))
-    return rows
-
-
-#: Labels of report.json's keys in the page's tables ("{u}": the ground truth's unit).
-_LABELS = {
-    "frames": "Frames", "frames_tracked": "Frames tracked", "frames_lost": "Frames lost",
-    "map_features": "Map features", "state_dim": "State size (entries)",
-    "information_nnz": "Non-zeros of the information matrix", "mode": "Mode", "detector": "Detector",
-    "map_fraction": "Fraction of tracks in the map (Ωm)", "total_seconds": "Run time (s)",
-    "fps": "Frames per second", "ate_rmse": "ATE RMSE ({u})", "ate_percent": "ATE (% of path length)",
-    "ate_units": "Unit of lengths", "units": "Unit of lengths", "ate_mean": "ATE mean ({u})",
-    "ate_median": "ATE median ({u})", "ate_max": "ATE max ({u})",
-    "gt_path_length": "Ground-truth path length ({u})", "tracked_fraction": "Tracked fraction",
-    "n_ground_truth": "Ground-truth poses", "n_estimate": "Estimated poses", "n_matched": "Poses matched",
-    "box_ratio_true": "Box width:length, true", "box_ratio_estimated": "Box width:length, estimated",
-    "box_ratio_points": "Map features on the box's top face", "box_ratio_error_percent": "Box ratio error (%)",
-    "eifslam_version": "eifslam version", "command": "Command", "source": "Source", "stopped": "Stopped",
-    "sim3.scale": "Sim(3) scale", "sim3.rotation": "Sim(3) rotation", "sim3.translation": "Sim(3) translation ({u})",
-}
-_STATS = {"rmse": "RMSE", "mean": "mean", "median": "median", "max": "max"}
-
-
-def _label(key: str, units: str) -> str:
-    """A reader's name for a flattened report.json key."""
-    if key in _LABELS:
-        return _LABELS[key].format(u=units)
-    head, _, tail = key.partition(".")
-    if head == "stage_ms_median":
-        return f"Median time per frame, {tail} (ms)"
-    if head in ("rpe_rot_deg", "rpe_dir_deg") and tail in _STATS:
-        what = "rotation" if head == "rpe_rot_deg" else "translation direction"
-        return f"RPE {what} {_STATS[tail]} (°)"
-    return key.replace("_", " ").replace(".", ": ")
-
-
-def _format(value: Any) -> str:
-    if value is None:
-        return "n/a"
-    if isinstance(value, bool):
-        return str(value).lower()
-    if isinstance(value, float):
-        return f"{value:.4g}"
-    if isinstance(value, list):
-        if len(value) <= 6 and all(isinstance(v, (int, float, str)) for v in value):
-            return "[" + ", ".join(_format(v) for v in value) + "]"
-        return f"[list of {len(value)}]"
-    return str(value)
-
-
-def _table(rows: list[tuple[str, Any]], table_id: str, units: str = GT_UNITS) -> str:
-    """Rows of (key, value): a readable label, the value to 4 significant digits (the full
-    value in ``data-value``) and the report.json key."""
-    body = "\n".join(
-        f'<tr id="{table_id}-{html.escape(k, quote=True)}"><th>{html.escape(_label(k, units))}</th>'
-        f'<td data-value="{html.escape(json.dumps(v, default=str), quote=True)}">{html.escape(_format(v))}</td>'
-        f'<td class="key">{html.escape(k)}</td></tr>'
-        for k, v in rows
-    )
-    return f'<table id="{table_id}">\n{body}\n</table>'
 
 
 _CSS = """
@@ -474,7 +421,8 @@ def write_report(out_dir: str | Path, ground_truth: Trajectory | None = None,
     if ground_truth is not None:
         gt_section, evaluation = _ground_truth_section(out, traj, ground_truth, points, colors, units)
         sections.append(gt_section)
-    sections.append(_sparsity_section(out, info, info_notes))
+    layout = _load(out / "state_layout.json", _read_layout, info_notes) if (out / "state_layout.json").exists() else None
+    sections.append(_sparsity_section(out, info, info_notes, layout))
     sections.append(_timing_section(out, frames, frame_notes))
 
     path = out / "report.html"
