@@ -66,7 +66,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
         help="score a trajectory against ground truth (ATE after Sim(3), RPE)",
         description=(
             "Score an estimated TUM trajectory against ground truth, in evo's order: ATE RMSE "
-            "after a Sim(3) alignment (as 'evo_ape tum GROUNDTRUTH ESTIMATE -as'), ATE as %% of "
+            "after a Sim(3) alignment (as 'evo_ape tum GROUNDTRUTH ESTIMATE -as'), ATE as % of "
             "path length, tracked fraction, RPE rotation and translation-direction errors in "
             "degrees. Lengths are in the ground truth's unit: metres for a data set folder, "
             "'ground-truth units' for a TUM file unless --units names it."
