@@ -178,10 +178,18 @@ def test_eval_command(tmp_path):
     est = _transform(gt, 2.0, np.eye(3), np.zeros(3), rng.normal(scale=0.01, size=(30, 3)))
     write_tum(tmp_path / "gt.tum", gt.timestamps, gt.positions, gt.quats_wxyz)
     write_tum(tmp_path / "est.tum", est.timestamps, est.positions, est.quats_wxyz)
-    rc = main(["eval", str(tmp_path / "est.tum"), str(tmp_path / "gt.tum"),
+    rc = main(["eval", str(tmp_path / "gt.tum"), str(tmp_path / "est.tum"),
                "--json", str(tmp_path / "r.json"), "--plot", str(tmp_path / "p.png")])
     assert rc == 0
     d = json.loads((tmp_path / "r.json").read_text())
     assert 0.005 < d["ate_rmse"] < 0.03 and d["tracked_fraction"] == 1.0
+    assert d["units"] == "ground-truth units"
+    assert abs(d["sim3"]["scale"] - 0.5) < 0.01  # est = 2 x gt: evo's order aligns the estimate onto gt
     assert (tmp_path / "p.png").read_bytes()[:4] == b"\x89PNG"
-    assert main(["eval", str(tmp_path / "nope.tum"), str(tmp_path / "gt.tum")]) == 1
+    assert main(["eval", str(tmp_path / "gt.tum"), str(tmp_path / "nope.tum")]) == 1
+    # swapped, the figures change (the order matters and is evo's)
+    rc = main(["eval", str(tmp_path / "est.tum"), str(tmp_path / "gt.tum"), "--json", str(tmp_path / "s.json"),
+               "--units", "m"])
+    s = json.loads((tmp_path / "s.json").read_text())
+    assert rc == 0 and abs(s["sim3"]["scale"] - 2.0) < 0.04 and s["units"] == "m"
+    assert s["ate_rmse"] > 1.5 * d["ate_rmse"]

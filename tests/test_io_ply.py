@@ -57,3 +57,37 @@ def test_bad_input(tmp_path):
     (tmp_path / "bad.ply").write_text("hello\n")
     with pytest.raises(DatasetError, match="bad.ply"):
         read_ply(tmp_path / "bad.ply")
+
+
+def test_broken_files_are_one_line_errors_naming_the_file(tmp_path):
+    good = tmp_path / "good.ply"
+    write_ply(good, np.ones((20, 3)), np.zeros((20, 3), np.uint8))
+    raw = good.read_bytes()
+    head = raw[: raw.index(b"end_header")]
+    cases = {
+        "truncated.ply": raw[: len(raw) - 7],
+        "huge.ply": head.replace(b"element vertex 20", b"element vertex 99999999999") + b"end_header\n" + b"\0" * 30,
+        "garbage.ply": b"ply\nformat nonsense 1.0\nend_header\n",
+        "noxyz.ply": b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float a\nend_header\n1\n",
+        "list.ply": b"ply\nformat ascii 1.0\nelement vertex 1\nproperty list uchar float x\nproperty float y\n"
+                    b"property float z\nend_header\n2 1 1 1 1\n",
+        "nan.ply": b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+                   b"property float z\nend_header\nnan 1 1\n",
+    }
+    for name, data in cases.items():
+        p = tmp_path / name
+        p.write_bytes(data)
+        with pytest.raises(DatasetError) as err:
+            read_ply(p)
+        assert name in str(err.value) and "\n" not in str(err.value), name
+
+
+def test_plyfile_reads_what_we_write(tmp_path):
+    from plyfile import PlyData
+
+    f = tmp_path / "m.ply"
+    pts = np.arange(12, dtype=float).reshape(4, 3)
+    write_ply(f, pts, np.full((4, 3), 7, np.uint8))
+    v = PlyData.read(str(f))["vertex"]
+    np.testing.assert_array_equal(np.c_[v["x"], v["y"], v["z"]], pts)
+    assert v["red"].tolist() == [7] * 4

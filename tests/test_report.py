@@ -17,7 +17,7 @@ from eifslam.io.ply import write_ply
 from eifslam.io.trajectory import Trajectory, write_tum
 from eifslam.evaluation.report import parse_frames, read_frames, write_report
 
-FIGURES = ("map_top.png", "map_3d.png", "information_sparsity.png", "timing.png")
+FIGURES = ("map_top.png", "map_top_close.png", "map_3d.png", "information_sparsity.png", "timing.png")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
@@ -92,8 +92,10 @@ def test_full_report(tmp_path):
     for f in FIGURES:
         _assert_png(tmp_path / "figures" / f)
     # report.json figures, nested keys flattened, HTML escaped
-    assert re.search(r"<th>ate_rmse</th><td>0.123457</td>", text)
-    assert "<th>timing_ms.total</th><td>15.5</td>" in text
+    # readable labels with units, 4 significant digits, the exact value and the key beside
+    assert re.search(r'<th>ATE RMSE \(ground-truth units\)</th><td data-value="0.123456789">0.1235</td>'
+                     r'<td class="key">ate_rmse</td>', text)
+    assert '<th>timing ms: total</th><td data-value="15.5">15.5</td>' in text
     assert "fake &lt;seq&gt;" in text
     # no ground truth: no evaluation
     assert "ate-rmse" not in text and "ground_truth.png" not in text
@@ -110,7 +112,7 @@ def test_ground_truth_ate_is_zero(tmp_path):
     text = write_report(tmp_path, ground_truth=gt).read_text()
     ate = float(re.search(r'<span id="ate-rmse">([^<]+)</span>', text).group(1))
     assert 0.0 <= ate < 1e-6
-    scale = float(re.search(r"<th>sim3.scale</th><td>([^<]+)</td>", text).group(1))
+    scale = float(re.search(r'<th>Sim\(3\) scale</th><td data-value="([^"]+)">', text).group(1))
     assert scale == pytest.approx(s, rel=1e-6)
     assert "figures/ground_truth.png" in _img_sources(text)
     _assert_png(tmp_path / "figures" / "ground_truth.png")
@@ -189,11 +191,39 @@ def test_sparsity_plot_counts_nonzeros_and_image_fallback():
     rng = np.random.default_rng(5)
     A = _spd(rng, 80)
     A.data[0] = 0.0  # a stored zero is not a non-zero
-    for max_markers in (10**6, 10):
+    for max_markers, image_size, note in ((10**6, 1000, ""), (10, 1000, " (binned: a black cell holds a non-zero "
+                                                                     "among 1 × 1 entries)"),
+                                          (10, 20, " (binned: a black cell holds a non-zero among 4 × 4 entries)")):
         fig, ax = plt.subplots()
-        plot_information_sparsity(ax, A, max_markers=max_markers)
-        assert ax.get_title() == f"nz = {A.count_nonzero()}"
+        plot_information_sparsity(ax, A, max_markers=max_markers, image_size=image_size)
+        assert ax.get_title() == f"nz = {A.count_nonzero()}{note}"
         plt.close(fig)
+
+
+def test_top_view_draws_camera_wedges_and_honours_limits():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from eifslam.evaluation.plots import plot_map_top
+
+    t = np.linspace(0, 2 * np.pi, 30, endpoint=False)
+    C = np.c_[np.cos(t), np.zeros(30), np.sin(t)]
+    # cameras looking at the centre, y down: R_wc columns (x, y, z) with z = -C
+    z = -C
+    y = np.tile([0.0, 1.0, 0.0], (30, 1))
+    R = np.stack([np.cross(y, z), y, z], axis=2)
+    P = np.r_[np.random.default_rng(0).normal(scale=0.1, size=(200, 3)), 50 * np.eye(3)]
+    fig, (a, b) = plt.subplots(1, 2)
+    plot_map_top(a, C, P, R_wc=R, frusta=10)
+    assert len(a.patches) == 10 and a.get_xlabel() == "x (map units)"
+    tip = a.patches[0].get_xy()
+    ahead = 0.5 * (tip[1] + tip[2]) - tip[0]
+    assert ahead @ -C[0, [0, 2]] > 0.9 * np.linalg.norm(ahead)  # the wedge opens where camera 0 looks
+    plot_map_top(b, C, P, R_wc=R, limits=(np.full(3, -1.5), np.full(3, 1.5)), frusta=0, units="m")
+    assert b.get_xlim() == (-1.5, 1.5) and len(b.patches) == 0 and b.get_ylabel() == "z (m)"
+    plt.close(fig)
 
 
 def test_stage_times_and_subsample():
@@ -215,3 +245,47 @@ def test_stage_times_and_subsample():
     plt.close(fig)
     idx = subsample_indices(30_000, 20_000, np.random.default_rng(0))
     assert len(idx) == 20_000 and len(np.unique(idx)) == 20_000 and np.all(np.diff(idx) > 0)
+
+
+def test_headlines_and_readable_tables(tmp_path):
+    rng = np.random.default_rng(3)
+    _make_run(tmp_path, rng)
+    rep = json.loads((tmp_path / "report.json").read_text())
+    rep.update(box_ratio_true=0.8, box_ratio_estimated=0.7912, config={"system": {"mode": "smooth"}},
+               ate_units="m", stage_ms_median={"detect": 12.3456})
+    (tmp_path / "report.json").write_text(json.dumps(rep))
+    text = write_report(tmp_path, title="eifslam demo").read_text()
+    assert '<p class="headline">Box width:length <span id="box-ratio">0.791</span> (true 0.80)</p>' in text
+    assert "<th>Median time per frame, detect (ms)</th>" in text and ">12.35</td>" in text
+    assert "<th>ATE RMSE (m)</th>" in text
+    # the configuration is a table of its own, folded away
+    assert text.index("<details>") < text.index('id="config-system.mode"') < text.index("</details>")
+    assert 'id="summary-config' not in text
+
+
+def test_sparsity_marks_pose_and_feature_blocks(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from eifslam.evaluation.plots import plot_information_sparsity
+
+    rng = np.random.default_rng(6)
+    isf = np.repeat(np.array([False, True, True, False, True]), [7, 3, 3, 7, 3])
+    fig, ax = plt.subplots()
+    plot_information_sparsity(ax, _spd(rng, len(isf)), is_feature=isf)
+    labels = sorted(t.get_text() for t in ax.get_legend().get_texts())
+    assert labels == ["feature entries (9)", "pose entries (14)"]
+    spans = {c.get_label(): c for c in ax.collections if c.get_label().endswith(")")}
+    assert len(spans["pose entries (14)"].get_paths()) == 2 and len(spans["feature entries (9)"].get_paths()) == 2
+    plt.close(fig)
+    # the report reads the layout beside information.npz; a layout of another size is a note
+    _make_run(tmp_path, rng)  # information.npz of 120 entries
+    (tmp_path / "state_layout.json").write_text(json.dumps({"kinds": "p" * 6 + "f" * 26}))
+    text = write_report(tmp_path).read_text()
+    assert "figures/information_sparsity.png" in text and "not marked" not in text
+    (tmp_path / "state_layout.json").write_text(json.dumps({"kinds": "p" * 6}))
+    assert "describes 42 entries, the matrix has 120" in write_report(tmp_path).read_text()
+    (tmp_path / "state_layout.json").write_text("[1, 2]")
+    assert "state_layout.json could not be read" in write_report(tmp_path).read_text()

@@ -30,3 +30,8 @@ class EstimatorError(EifslamError):
 
 class OutputError(EifslamError):
     """An output folder or file cannot be created or written."""
+
+
+class SessionError(EifslamError):
+    """A session file is not one this eifslam wrote (foreign, truncated, crafted or of
+    another version)."""

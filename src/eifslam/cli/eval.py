@@ -1,4 +1,7 @@
-"""``eifslam eval ESTIMATE GROUND_TRUTH``: ATE, RPE, tracked fraction of a trajectory."""
+"""``eifslam eval GROUNDTRUTH ESTIMATE``: ATE, RPE, tracked fraction of a trajectory.
+
+The arguments are in evo's order (``evo_ape tum GROUNDTRUTH ESTIMATE -as``).
+"""
 
 from __future__ import annotations
 
@@ -13,16 +16,18 @@ from ..io.files import atomic_path, atomic_write
 from ..io.trajectory import Trajectory, read_tum
 
 
-def _ground_truth(path: Path) -> Trajectory:
-    """A TUM file, or the ground truth of a data set folder / video."""
+def _ground_truth(path: Path) -> tuple[Trajectory, str | None]:
+    """A TUM file, or the ground truth of a data set folder / video (in metres), and its
+    unit when known."""
     if path.is_file() and path.suffix.lower() not in (".mp4", ".avi", ".mov", ".mkv"):
-        return read_tum(path)
+        return read_tum(path), None
+    from ..evaluation.metrics import DATASET_UNITS
     from ..io.detect import open_source
 
     gt = open_source(path).ground_truth()
     if gt is None:
         raise DatasetError(f"{path}: data set has no ground truth")
-    return gt
+    return gt, DATASET_UNITS
 
 
 def _check_output_file(path: str, option: str) -> None:
@@ -70,11 +75,13 @@ def run(args: argparse.Namespace) -> int:
     """Evaluate, print, and optionally write JSON and a plot."""
     from ..evaluation.metrics import evaluate
 
+    from ..evaluation.metrics import GT_UNITS
+
     check_args(args)
+    gt, known = _ground_truth(Path(args.ground_truth))
     est = read_tum(args.estimate)
-    gt = _ground_truth(Path(args.ground_truth))
     try:
-        result = evaluate(est, gt, max_diff=args.max_diff)
+        result = evaluate(est, gt, max_diff=args.max_diff, units=args.units or known or GT_UNITS)
     except EifslamError as exc:  # name the files the problem is about
         raise type(exc)(f"{args.estimate} against {args.ground_truth}: {exc}") from None
     print(result.summary())
@@ -107,15 +114,20 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "eval",
         help="score a trajectory against ground truth (ATE after Sim(3), RPE)",
         description=(
-            "Score an estimated TUM trajectory against ground truth: ATE RMSE after a Sim(3) "
-            "alignment (as 'evo_ape tum GT EST -as'), ATE as %% of path length, tracked "
-            "fraction, RPE rotation and translation-direction errors in degrees."
+            "Score an estimated TUM trajectory against ground truth, in evo's order: ATE RMSE "
+            "after a Sim(3) alignment (as 'evo_ape tum GROUNDTRUTH ESTIMATE -as'), ATE as % of "
+            "path length, tracked fraction, RPE rotation and translation-direction errors in "
+            "degrees. Lengths are in the ground truth's unit: metres for a data set folder, "
+            "'ground-truth units' for a TUM file unless --units names it."
         ),
     )
-    p.add_argument("estimate", help="estimated trajectory, TUM format")
-    p.add_argument("ground_truth", help="ground truth: TUM file or data set folder")
+    p.add_argument("ground_truth", metavar="GROUNDTRUTH", help="ground truth: TUM file or data set folder")
+    p.add_argument("estimate", metavar="ESTIMATE", help="estimated trajectory, TUM format (e.g. DIR/trajectory.tum)")
+    p.add_argument("--units", metavar="UNIT", default=None,
+                   help="name of the ground truth's length unit, e.g. m (default: m for a data set "
+                        "folder, 'ground-truth units' for a TUM file)")
     p.add_argument("--plot", metavar="FILE", help="save a top view of the aligned trajectories")
-    p.add_argument("--json", metavar="FILE", help="write the figures as JSON")
+    p.add_argument("--json", metavar="FILE", help="write the figures as JSON (ate_rmse, units, RPE, Sim(3), ...)")
     p.add_argument("--json-arrays", action="store_true", help="include per-pose arrays in JSON")
     p.add_argument(
         "--max-diff", type=float, default=0.01, metavar="S",

@@ -24,7 +24,7 @@ from .. import __version__
 from ..errors import EifslamError
 
 #: sub-command modules, in the order ``--help`` lists them
-COMMANDS = ("demo", "run", "render", "eval")
+COMMANDS = ("demo", "run", "render", "eval", "config")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -83,6 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``eifslam`` console script."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # report.json records the command
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

@@ -6,7 +6,7 @@ import argparse
 import math
 from pathlib import Path
 
-from ..errors import ConfigError, DatasetError
+from ..errors import ConfigError, DatasetError, EifslamError
 from ..frontend.config import DETECTORS
 from ..system.config import Mode, SlamConfig
 
@@ -33,6 +33,70 @@ def add_common_options(p: argparse.ArgumentParser, max_features: int | None = No
                    help=f"features detected per image (default {max_features or fe.max_features})")
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames")
     p.add_argument("--no-html", action="store_true", help="skip report.html")
+    p.add_argument("--config", type=Path, default=None, metavar="FILE.yaml",
+                   help="settings from a YAML file (any of 'eifslam config' prints); the options above "
+                        "override it")
+    p.add_argument("--seed", type=int, default=None,
+                   help=f"seed of the front end's random draws (frontend.seed, default {fe.seed})")
+    p.add_argument("--force", action="store_true",
+                   help="write into an output folder that already holds eifslam outputs (they are replaced)")
+    talk = p.add_mutually_exclusive_group()
+    talk.add_argument("-q", "--quiet", action="store_true", help="no progress bar and no summary line")
+    talk.add_argument("-v", "--verbose", action="store_true",
+                      help="also print the effective configuration (YAML) before the run")
+
+
+#: Files an eifslam run writes into its output folder (the overwrite guard looks for them).
+OUTPUT_FILES = ("report.json", "trajectory.tum", "map.ply", "frames.json", "information.npz", "state_layout.json",
+                "report.html")
+
+
+def guard_outputs(out: Path, force: bool) -> None:
+    """Refuse to write into a folder that holds an earlier run's outputs, unless ``force``.
+
+    Raises
+    ------
+    EifslamError
+        One line naming the folder and the first output file found in it.
+    """
+    if force or not out.is_dir():
+        return
+    found = [f for f in OUTPUT_FILES if (out / f).is_file()]  # a folder of that name is no output
+    if found:
+        raise EifslamError(f"{out} already holds eifslam outputs ({found[0]}); use --force to replace them, "
+                           "or choose another --out")
+
+
+def base_config(args: argparse.Namespace, default: SlamConfig | None = None) -> SlamConfig:
+    """The configuration before the command-line options: ``--config FILE``'s, else ``default``
+    (``SlamConfig()``)."""
+    if getattr(args, "config", None) is not None:
+        from .config import read_config
+
+        return read_config(args.config)
+    return default or SlamConfig()
+
+
+def provenance(args: argparse.Namespace, config: SlamConfig) -> dict:
+    """What ``report.json`` records to reproduce the run: the version, the full effective
+    configuration and the command."""
+    import shlex
+
+    from .. import __version__
+
+    argv = getattr(args, "argv", None)
+    return {"eifslam_version": __version__, "config": config.to_dict(),
+            "command": shlex.join(["eifslam", *argv]) if argv is not None else None}
+
+
+def announce(args: argparse.Namespace, config: SlamConfig) -> None:
+    """With ``-v``: the effective configuration on stderr."""
+    if getattr(args, "verbose", False):
+        import sys
+
+        from .config import config_yaml
+
+        print("eifslam: effective configuration:\n" + config_yaml(config), file=sys.stderr, end="")
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -42,6 +106,11 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--camera", type=Path, default=None, help="camera file (eifslam YAML, OpenCV YAML, KITTI calib.txt)")
     p.add_argument("--scale-distance", nargs=5, metavar=("KIND_A", "ID_A", "KIND_B", "ID_B", "LENGTH"), default=None,
                    help="known length between two states, e.g. 'pose 0 pose 10 2.5' or 'feature 12 feature 40 0.3'")
+    p.add_argument("--save-session", type=Path, default=None, metavar="FILE",
+                   help="save the session (.npz) after the last frame, to continue it with --resume")
+    p.add_argument("--resume", type=Path, default=None, metavar="FILE",
+                   help="continue a saved session on the frames of SOURCE after those it has "
+                        "(with the session's configuration)")
     add_common_options(p)
     p.set_defaults(func=main)
     return p
@@ -62,6 +131,8 @@ def make_config(args: argparse.Namespace, base: SlamConfig | None = None) -> Sla
         fe["detector"] = args.features
     if args.max_features is not None:
         fe["max_features"] = args.max_features
+    if getattr(args, "seed", None) is not None:
+        fe["seed"] = args.seed
     sy = {} if args.mode is None else {"mode": args.mode}
     return (base or SlamConfig()).replace(frontend=fe, system=sy)
 
@@ -110,11 +181,26 @@ def main(args: argparse.Namespace) -> int:
 
     # everything that can be checked before any work: options, output folder, then source
     scale = parse_scale(args.scale_distance)
-    config = make_config(args)
+    guard_outputs(args.out, args.force)
+    resume = None
+    if args.resume is not None:
+        from ..system.slam import Slam
+
+        resume = Slam.load(args.resume)
+        given = [f"--{k.replace('_', '-')}" for k in ("mode", "features", "map_fraction", "max_features",
+                                                      "seed", "config")
+                 if getattr(args, k, None) is not None]
+        if given:
+            raise ConfigError(f"--resume continues with the session's configuration; {given[0]} cannot change it")
+        config = resume.config
+    else:
+        config = make_config(args, base_config(args))
     ensure_output_dir(args.out)
     seq = open_source(args.source, camera=args.camera)
-    rep = run_to_folder(seq, config, args.out, max_frames=args.max_frames,
-                        scale=scale, html=not args.no_html)
+    announce(args, config)
+    rep = run_to_folder(seq, config, args.out, max_frames=args.max_frames, scale=scale, html=not args.no_html,
+                        extra=provenance(args, config), quiet=args.quiet, verbose=not args.quiet,
+                        slam=resume, save_session=args.save_session)
     if rep.get("frames_tracked", 0) == 0:
         raise DatasetError(f"{args.source}: no frame could be tracked ({rep.get('frames', 0)} read; "
                            f"the empty outputs are in {args.out})")

@@ -39,16 +39,18 @@ eliminated part) and the event is counted as a fallback. Rebuilding also follows
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Mapping, Protocol
 
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from ..errors import ConfigError, EstimatorError
+from ..errors import ConfigError, EstimatorError, SessionError
 from .information import InformationStore
 from .recovery import factorize
+from .statedict import sub, take_ids, take_int
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout
 from .window import ActiveWindow, RecoveryStats, Conditional
 
@@ -182,6 +184,32 @@ class IncrementalRecovery(ActiveWindow):
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
+
+    # -- sessions -----------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """What a session keeps: the step of each state's last measurement and the
+        counters (the window is not kept; a loaded recovery rebuilds it, as an unpickled
+        one does)."""
+        return {"last": self._last.copy(), "stats": dataclasses.asdict(self.stats)}
+
+    def load_state_dict(self, d: Mapping[str, Any], dim: int) -> None:
+        """Restore :meth:`state_dict` into a fresh recovery of a filter of ``dim``
+        entries; the window is invalid until the next :meth:`step` rebuilds it.
+
+        Raises
+        ------
+        SessionError
+            On a malformed entry.
+        """
+        last = take_ids(d, "last")
+        if len(last) > dim:
+            raise SessionError("array 'last' is longer than the state")
+        st = sub(d, "stats")
+        stats = RecoveryStats(**{f.name: take_int(st, f.name, 0) for f in dataclasses.fields(RecoveryStats)})
+        if last.size and last.max() > stats.steps:
+            raise SessionError("array 'last' holds a step after the last one")
+        self.on_invalidate()
+        self.stats, self._last = stats, last.copy()
 
     # -- listener -----------------------------------------------------------------------
     def on_add(self, idx: IntArray, Lam: Array, eta: Array) -> None:

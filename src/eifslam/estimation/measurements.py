@@ -125,6 +125,57 @@ class RelativePose:
         object.__setattr__(self, "cov", 0.5 * (cov + cov.T))
 
 
+def pack_relative(rps: "list[RelativePose]") -> dict[str, NDArray]:
+    """Relative poses as arrays (sessions): ``ij (R, 2)``, ``q (R, 4)``, ``t (R, 3)``,
+    ``cov (R, 5, 5)``, ``inliers (R,)``."""
+    return {
+        "ij": np.array([[r.i, r.j] for r in rps], np.int64).reshape(-1, 2),
+        "q": np.array([r.q_ij for r in rps], float).reshape(-1, 4),
+        "t": np.array([r.t_ij for r in rps], float).reshape(-1, 3),
+        "cov": np.array([r.cov for r in rps], float).reshape(-1, 5, 5),
+        "inliers": np.array([r.n_inliers for r in rps], np.int64),
+    }
+
+
+def unpack_relative(d) -> "list[RelativePose]":
+    """The relative poses of :func:`pack_relative`'s arrays, checked.
+
+    Raises
+    ------
+    SessionError
+        On a missing or malformed array.
+    """
+    from ..errors import SessionError
+    from .statedict import take, take_ids
+
+    ij = take(d, "ij", np.int64, (None, 2))
+    n = len(ij)
+    q, t = take(d, "q", np.float64, (n, 4)), take(d, "t", np.float64, (n, 3))
+    cov, inl = take(d, "cov", np.float64, (n, 5, 5)), take_ids(d, "inliers", n)
+    try:
+        return [RelativePose(int(a), int(b), qq, tt, cc, int(m)) for (a, b), qq, tt, cc, m in zip(ij, q, t, cov, inl)]
+    except ValueError as exc:
+        raise SessionError(f"bad relative pose: {exc}") from None
+
+
+def pack_features(obs: FeatureObservations) -> dict[str, NDArray]:
+    """A batch of ``Zm`` as arrays (sessions): ``pose``, ``feature``, ``uv``, ``sigma_px``."""
+    return {"pose": obs.pose, "feature": obs.feature, "uv": obs.uv, "sigma_px": obs.sigma_px}
+
+
+def unpack_features(d) -> FeatureObservations:
+    """The batch of :func:`pack_features`'s arrays, checked (:class:`SessionError`)."""
+    from ..errors import SessionError
+    from .statedict import take, take_ids
+
+    pose = take_ids(d, "pose")
+    n = len(pose)
+    feature, uv, sig = take_ids(d, "feature", n), take(d, "uv", np.float64, (n, 2)), take(d, "sigma_px", np.float64, (n,))
+    if n and not sig.min() > 0:
+        raise SessionError("array 'sigma_px' holds a value that is not positive")
+    return FeatureObservations(pose.copy(), feature.copy(), uv.copy(), sig.copy())
+
+
 @dataclass
 class MeasurementStore:
     """Every measurement fused so far, kept for smoothing (paper III-E).

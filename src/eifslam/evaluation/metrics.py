@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from evo.core import metrics as evo_metrics
 from evo.core import sync
 from evo.core.geometry import GeometryException, umeyama_alignment
 from evo.core.trajectory import PoseTrajectory3D
@@ -40,7 +41,7 @@ from ..io.trajectory import Trajectory
 
 Array = NDArray[np.float64]
 
-__all__ = ["EvaluationError", "Sim3", "EvaluationResult", "align_sim3", "evaluate", "to_evo"]
+__all__ = ["DATASET_UNITS", "GT_UNITS", "EvaluationError", "Sim3", "EvaluationResult", "align_sim3", "evaluate", "to_evo"]
 
 
 class EvaluationError(EifslamError):
@@ -91,6 +92,13 @@ class Sim3:
         }
 
 
+#: The name of a length in the ground truth's unit when the unit is not known.
+GT_UNITS = "ground-truth units"
+#: The unit of the ground truth of every data set eifslam reads (KITTI, TUM RGB-D,
+#: EuRoC, Strecha, the built-in scene): metres.
+DATASET_UNITS = "m"
+
+
 def _stats(x: Array) -> dict[str, float | None]:
     if len(x) == 0:
         return {"rmse": None, "mean": None, "median": None, "max": None}
@@ -134,6 +142,10 @@ class EvaluationResult:
         Rotation error of each consecutive associated pair, degrees.
     rpe_dir_deg : (K,) float64
         Translation-direction error of each pair with non-zero motion, degrees.
+    units : str
+        Name of the ground truth's length unit, printed after every length ("m" for the
+        data sets eifslam reads, whose ground truth is in metres; "ground-truth units"
+        when it is not known).
     """
 
     ate_rmse: float
@@ -154,6 +166,7 @@ class EvaluationResult:
     ate_errors: Array = field(repr=False)
     rpe_rot_deg: Array = field(repr=False)
     rpe_dir_deg: Array = field(repr=False)
+    units: str = GT_UNITS
 
     @property
     def rpe_rot(self) -> dict[str, float | None]:
@@ -168,6 +181,7 @@ class EvaluationResult:
     def to_dict(self, arrays: bool = False) -> dict[str, Any]:
         """JSON-friendly dictionary of the figures; with ``arrays`` also per-pose data."""
         d: dict[str, Any] = {
+            "units": self.units,
             "ate_rmse": self.ate_rmse,
             "ate_mean": self.ate_mean,
             "ate_median": self.ate_median,
@@ -197,13 +211,14 @@ class EvaluationResult:
             return "n/a" if v is None else f"{v:.3f}"
 
         pct = f"{self.ate_percent:.3f} %" if np.isfinite(self.ate_percent) else "n/a"
+        u = self.units
         return "\n".join(
             [
                 f"matched poses     {self.n_matched} (estimate {self.n_estimate}, "
                 f"ground truth {self.n_ground_truth})",
                 f"tracked fraction  {self.tracked_fraction:.3f}",
-                f"ATE RMSE (Sim3)   {self.ate_rmse:.6g}  ({pct} of {self.gt_path_length:.4g} path)",
-                f"ATE mean/median/max {self.ate_mean:.6g} / {self.ate_median:.6g} / {self.ate_max:.6g}",
+                f"ATE RMSE (Sim3)   {self.ate_rmse:.6g} {u}  ({pct} of {self.gt_path_length:.4g} {u} path)",
+                f"ATE mean/median/max {self.ate_mean:.6g} / {self.ate_median:.6g} / {self.ate_max:.6g} {u}",
                 f"RPE rotation deg  rmse {fmt(rr['rmse'])}  mean {fmt(rr['mean'])}  "
                 f"median {fmt(rr['median'])}  max {fmt(rr['max'])}",
                 f"RPE direction deg rmse {fmt(rd['rmse'])}  mean {fmt(rd['mean'])}  "
@@ -274,7 +289,8 @@ def _relative_errors(R_gt: Array, p_gt: Array, R_est: Array, p_est: Array) -> tu
     return rot, np.degrees(np.arctan2(cross, dot))
 
 
-def evaluate(estimate: Trajectory, ground_truth: Trajectory, max_diff: float = 0.01) -> EvaluationResult:
+def evaluate(estimate: Trajectory, ground_truth: Trajectory, max_diff: float = 0.01,
+             units: str = GT_UNITS) -> EvaluationResult:
     """Score an estimated trajectory against ground truth.
 
     Poses are associated by nearest timestamp within ``max_diff`` seconds (evo's
@@ -286,6 +302,7 @@ def evaluate(estimate: Trajectory, ground_truth: Trajectory, max_diff: float = 0
     estimate : camera-to-world poses, any world frame and scale.
     ground_truth : camera-to-world poses.
     max_diff : association window in seconds.
+    units : name of the ground truth's length unit (for printing; nothing is converted).
 
     Returns
     -------
@@ -313,17 +330,22 @@ def evaluate(estimate: Trajectory, ground_truth: Trajectory, max_diff: float = 0
     p_gt, p_est = gt_s.positions_xyz, est_s.positions_xyz
     sim3 = align_sim3(p_est, p_gt)
     aligned = sim3.apply(p_est)
-    err = np.linalg.norm(aligned - p_gt, axis=1)
+    # ATE statistics: evo's APE on the translation part, as evo_ape computes them
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape.process_data((gt_s, PoseTrajectory3D(positions_xyz=aligned, orientations_quat_wxyz=gt_s.orientations_quat_wxyz,
+                                             timestamps=gt_s.timestamps)))
+    err = np.asarray(ape.error, dtype=np.float64)
+    stats = ape.get_all_statistics()
     path = float(np.sum(np.linalg.norm(np.diff(p_gt, axis=0), axis=1)))
     R_gt = np.asarray(gt_s.poses_se3)[:, :3, :3]
     R_est = np.asarray(est_s.poses_se3)[:, :3, :3]
     rot, dirs = _relative_errors(R_gt, p_gt, R_est, p_est)
-    rmse = float(np.sqrt(np.mean(err**2)))
+    rmse = float(stats["rmse"])
     return EvaluationResult(
         ate_rmse=rmse,
-        ate_mean=float(np.mean(err)),
-        ate_median=float(np.median(err)),
-        ate_max=float(np.max(err)),
+        ate_mean=float(stats["mean"]),
+        ate_median=float(stats["median"]),
+        ate_max=float(stats["max"]),
         ate_percent=100.0 * rmse / path if path > 0 else float("inf"),
         gt_path_length=path,
         tracked_fraction=m / n_gt,
@@ -338,4 +360,5 @@ def evaluate(estimate: Trajectory, ground_truth: Trajectory, max_diff: float = 0
         ate_errors=err,
         rpe_rot_deg=rot,
         rpe_dir_deg=dirs,
+        units=str(units),
     )

@@ -7,6 +7,8 @@ after a run and writes, into one folder,
 * ``map.ply``         map features with colours;
 * ``frames.json``     per-frame tracking state, stage milliseconds, state size;
 * ``information.npz`` the final information matrix (``scipy.sparse.save_npz``);
+* ``state_layout.json`` ``{"kinds": "pff..."}``: the states in order, a pose (7 entries)
+  or a feature (3), for the blocks of that matrix;
 * ``report.json``     the summary figures, with ATE when ground truth is given
   (ground truth is read here, for scoring only, after the estimate is final; a ground
   truth that cannot be read or used leaves ``evaluation_skipped`` with the reason, and
@@ -31,6 +33,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from .. import __version__
 from ..errors import EifslamError, OutputError
 from ..io import Trajectory, write_ply, write_tum
 from ..io.files import atomic_path, atomic_write, ensure_output_dir
@@ -58,7 +61,7 @@ def frame_rows(slam: Slam) -> list[dict[str, Any]]:
 def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
             extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """The figures of ``report.json``."""
-    from .metrics import evaluate
+    from .metrics import DATASET_UNITS, evaluate
 
     res = slam.results
     n = len(res)
@@ -73,6 +76,7 @@ def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
         detector=slam.config.frontend.detector, map_fraction=slam.config.frontend.map_fraction,
         stage_ms_median={s: _median([r.timings_ms[s] for r in res if s in r.timings_ms]) for s in stages},
         total_seconds=round(total_s, 3), fps=round(n / total_s, 3) if total_s > 0 else None,
+        eifslam_version=__version__, config=slam.config.to_dict(),
     )
     if slam.smoothing is not None:
         rep["smoothing"] = dict(passes=slam.smoothing.passes, step_norms=slam.smoothing.step_norms)
@@ -81,8 +85,9 @@ def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
     if ground_truth is not None:
         t, P, Q = slam.trajectory()
         try:
-            ev = evaluate(Trajectory(t, P, Q), ground_truth)
+            ev = evaluate(Trajectory(t, P, Q), ground_truth, units=DATASET_UNITS)
             rep["ate_rmse"] = ev.ate_rmse
+            rep["ate_units"] = ev.units
             rep["ate_percent"] = ev.ate_percent
             rep["evaluation"] = ev.to_dict()
         except Exception as exc:  # evaluation must never lose the run's outputs
@@ -120,6 +125,8 @@ def write_outputs(slam: Slam, out_dir: str | Path, total_s: float, ground_truth:
     save(write_ply, out / "map.ply", X, cols)
     save(atomic_write, out / "frames.json", json.dumps({"frames": frame_rows(slam)}, indent=1))
     save(save_npz, out / "information.npz")
+    kinds = "".join("f" if k.kind == "feature" else "p" for k in slam.filter.layout.order)
+    save(atomic_write, out / "state_layout.json", json.dumps({"kinds": kinds}))  # the blocks of information.npz
     rep = summary(slam, total_s, ground_truth, extra)
     if errors:
         rep["write_errors"] = list(errors)
@@ -129,9 +136,11 @@ def write_outputs(slam: Slam, out_dir: str | Path, total_s: float, ground_truth:
         raise OutputError(errors[0] + more)
     if html:
         try:
+            from .metrics import DATASET_UNITS
             from .report import write_report
 
-            write_report(out, ground_truth=None if "evaluation_skipped" in rep else ground_truth)
+            write_report(out, ground_truth=None if "evaluation_skipped" in rep else ground_truth,
+                         units=DATASET_UNITS)
         except ImportError:
             pass
         except EifslamError as exc:  # the figures are a view; everything else is written
@@ -169,13 +178,13 @@ def summary_line(rep: dict[str, Any], out_dir: str | Path) -> str:
     line = (f"eifslam: {rep['frames_tracked']}/{rep['frames']} frames tracked, {rep['map_features']} map features, "
             f"{rep['fps']} fps")
     if "ate_rmse" in rep:
-        line += f", ATE {rep['ate_rmse']:.4g}"
+        line += f", ATE {rep['ate_rmse']:.4g} {rep.get('ate_units', '')}".rstrip()
     return line + f"; outputs in {out_dir}"
 
 
 def run_to_folder(seq, config, out_dir: str | Path, max_frames: int | None = None, scale: tuple | None = None,
                   html: bool = True, extra: dict[str, Any] | None = None, quiet: bool = False,
-                  verbose: bool = True) -> dict[str, Any]:
+                  verbose: bool = True, **session: Any) -> dict[str, Any]:
     """Run SLAM over a sequence and write every output into ``out_dir``.
 
     Parameters
@@ -192,6 +201,9 @@ def run_to_folder(seq, config, out_dir: str | Path, max_frames: int | None = Non
         Copied into ``report.json``.
     verbose : bool
         Print :func:`summary_line` to stderr.
+    **session
+        ``slam`` (a loaded session to continue) and ``save_session`` (a path), passed to
+        :func:`~eifslam.system.runner.run_sequence`.
 
     Returns
     -------
@@ -206,11 +218,12 @@ def run_to_folder(seq, config, out_dir: str | Path, max_frames: int | None = Non
     from ..system.runner import stop_requests
 
     with stop_requests():  # SIGTERM while saving: the saving goes on (the CLI's handler)
-        return _run_and_write(seq, config, out_dir, max_frames, scale, html, extra, quiet, verbose)
+        return _run_and_write(seq, config, out_dir, max_frames, scale, html, extra, quiet, verbose, session)
 
 
 def _run_and_write(seq, config, out_dir: str | Path, max_frames: int | None, scale: tuple | None, html: bool,
-                   extra: dict[str, Any] | None, quiet: bool, verbose: bool) -> dict[str, Any]:
+                   extra: dict[str, Any] | None, quiet: bool, verbose: bool,
+                   session: dict[str, Any]) -> dict[str, Any]:
     """:func:`run_to_folder` inside its stop-request block (same parameters)."""
     from ..system.runner import run_sequence
 
@@ -222,7 +235,8 @@ def _run_and_write(seq, config, out_dir: str | Path, max_frames: int | None, sca
             partial.append(res.timestamp, res.position, res.quat_wxyz)
 
     try:
-        run = run_sequence(seq, config, max_frames=max_frames, scale=scale, quiet=quiet, on_frame=on_frame)
+        run = run_sequence(seq, config, max_frames=max_frames, scale=scale, quiet=quiet, on_frame=on_frame,
+                           **session)
     finally:
         partial.close()
     gt, skipped = scoring_ground_truth(seq)

@@ -18,6 +18,9 @@ from .plots_eval import plot_evaluation, top_view_axes
 
 Array = NDArray[np.float64]
 
+#: The length unit of an estimate's own frame (its scale is set between the first two poses).
+MAP_UNITS = "map units"
+
 __all__ = [
     "STAGES",
     "subsample_indices",
@@ -115,6 +118,9 @@ def plot_map_top(
     max_points: int = 20_000,
     point_size: float = 2.0,
     rng: np.random.Generator | None = None,
+    units: str = MAP_UNITS,
+    limits: tuple[Array, Array] | None = None,
+    frusta: int = 24,
 ) -> None:
     """Top view of the camera trajectory over the map.
 
@@ -130,6 +136,11 @@ def plot_map_top(
     max_points : features drawn at most (random subset beyond that).
     point_size : marker area of the features (points²).
     rng : generator for the subset (see :func:`subsample_indices`).
+    units : name of the length unit of the positions, on the axes (default: the map's own
+        unit, fixed by ``system.scale_distance`` between the first two poses).
+    limits : ``(lo, hi)`` (3,) corners of the region shown; default :func:`robust_limits`.
+    frusta : with ``R_wc``, draw the viewing wedge (optical axis and a 60-degree field of
+        view, cut at 6 % of the view's width) of this many evenly spaced cameras.
     """
     C = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -142,11 +153,14 @@ def plot_map_top(
         ax.plot(C[:, a], C[:, b], ".-", color=_TRAJ_COLOR, lw=1.0, ms=2, zorder=3,
                 label=f"cameras ({len(C)})")
         ax.plot(C[0, a], C[0, b], "o", color="k", ms=5, zorder=4, label="start")
-    lo, hi = robust_limits(C, P)
+    lo, hi = robust_limits(C, P) if limits is None else (np.asarray(limits[0]), np.asarray(limits[1]))
+    if R_wc is not None and len(C) and frusta > 0:
+        _draw_frusta(ax, C, np.asarray(R_wc, float).reshape(-1, 3, 3), (a, b), 0.06 * max(hi[a] - lo[a], hi[b] - lo[b]),
+                     frusta)
     ax.set_xlim(lo[a], hi[a])
     ax.set_ylim(lo[b], hi[b])
-    ax.set_xlabel(_AXIS_NAMES[a])
-    ax.set_ylabel(_AXIS_NAMES[b])
+    ax.set_xlabel(f"{_AXIS_NAMES[a]} ({units})")
+    ax.set_ylabel(f"{_AXIS_NAMES[b]} ({units})")
     ax.set_aspect("equal", adjustable="box")
     if len(C) or len(idx):
         ax.legend(loc="best", fontsize="small", markerscale=2)
@@ -162,6 +176,18 @@ def _vertical_axis(R_wc: Array | None) -> tuple[int, float]:
     return 2, 1.0
 
 
+def _draw_frusta(ax: Any, C: Array, R: Array, axes: tuple[int, int], size: float, count: int) -> None:
+    """Viewing wedges of ``count`` evenly spaced cameras (centres ``C``, rotations ``R_wc``)
+    in the top view ``axes``: the camera-frame rays ``(±tan 30°, 0, 1)`` scaled to ``size``."""
+    a, b = axes
+    idx = np.unique(np.linspace(0, len(C) - 1, min(count, len(C))).round().astype(int))
+    rays = np.array([[-np.tan(np.radians(30)), 0.0, 1.0], [np.tan(np.radians(30)), 0.0, 1.0]]) * size
+    for k in idx:
+        left, right = C[k] + R[k] @ rays[0], C[k] + R[k] @ rays[1]
+        ax.fill([C[k, a], left[a], right[a]], [C[k, b], left[b], right[b]], color=_TRAJ_COLOR, alpha=0.25,
+                lw=0.6, zorder=2)
+
+
 def plot_map_3d(
     ax: Any,
     positions: Array,
@@ -171,13 +197,14 @@ def plot_map_3d(
     max_points: int = 20_000,
     point_size: float = 1.0,
     rng: np.random.Generator | None = None,
+    units: str = MAP_UNITS,
 ) -> None:
     """Perspective view of the trajectory and the map.
 
     Parameters
     ----------
     ax : matplotlib 3-D Axes (``fig.add_subplot(projection="3d")``).
-    positions, points, colors, max_points, point_size, rng
+    positions, points, colors, max_points, point_size, rng, units
         As in :func:`plot_map_top`.
     R_wc : (N, 3, 3) camera-to-world rotations. When given, the world axis along the
         mean camera ``-y`` (up in the images) is drawn upwards; otherwise ``z`` is.
@@ -210,9 +237,9 @@ def plot_map_3d(
     ax.set_ylim(lo[1], hi[1])
     ax.set_zlim(lo[2], hi[2])
     ax.set_box_aspect(tuple(hi - lo), zoom=0.85)
-    ax.set_xlabel(_AXIS_NAMES[h0])
-    ax.set_ylabel(_AXIS_NAMES[h1])
-    ax.set_zlabel(("" if sign > 0 else "-") + _AXIS_NAMES[up])
+    ax.set_xlabel(f"{_AXIS_NAMES[h0]} ({units})")
+    ax.set_ylabel(f"{_AXIS_NAMES[h1]} ({units})")
+    ax.set_zlabel(f"{'' if sign > 0 else '-'}{_AXIS_NAMES[up]} ({units})")
 
 
 def plot_information_sparsity(
@@ -221,6 +248,7 @@ def plot_information_sparsity(
     markersize: float | None = None,
     max_markers: int = 1_000_000,
     image_size: int = 1000,
+    is_feature: NDArray[np.bool_] | None = None,
 ) -> None:
     """Sparsity pattern of the information matrix, as the paper's Figs. 1b and 3c.
 
@@ -233,8 +261,12 @@ def plot_information_sparsity(
         ``image_size`` × ``image_size`` cells (a cell is black when it holds a non-zero)
         instead of one marker per entry.
     image_size : cells per side of that image.
+    is_feature : (n,) bool, optional
+        Whether each entry of the state belongs to a map feature (else to a pose); the
+        pose and feature blocks are then marked by a strip under the pattern.
 
-    The title is ``nz = <number of non-zeros>``.
+    The title is ``nz = <number of non-zeros>``, followed by the cell size when the
+    pattern is binned.
     """
     A = sp.coo_array(information)
     A.eliminate_zeros()
@@ -256,7 +288,28 @@ def plot_information_sparsity(
         if markersize is None:
             markersize = float(np.clip(200.0 / max(n_rows, n_cols, 1), 0.05, 3.0))
         ax.spy(A, markersize=markersize, color="k")
-    ax.set_title(f"nz = {nnz}")
+    if is_feature is not None and len(is_feature) == n_cols and n_cols:
+        _mark_blocks(ax, np.asarray(is_feature, bool))
+    title = f"nz = {nnz}"
+    if nnz > max_markers:
+        title += f" (binned: a black cell holds a non-zero among {cell} × {cell} entries)"
+    ax.set_title(title)
+
+
+def _mark_blocks(ax: Any, is_feature: NDArray[np.bool_]) -> None:
+    """A strip under a sparsity pattern: pose entries blue, feature entries orange."""
+    from matplotlib.transforms import blended_transform_factory
+
+    edges = np.flatnonzero(np.diff(is_feature.astype(np.int8))) + 1
+    starts, ends = np.r_[0, edges], np.r_[edges, len(is_feature)]
+    under = blended_transform_factory(ax.transData, ax.transAxes)
+    for feat, colour, what in ((False, "tab:blue", "pose"), (True, "tab:orange", "feature")):
+        sel = is_feature[starts] == feat
+        if sel.any():
+            ax.broken_barh(list(zip(starts[sel] - 0.5, ends[sel] - starts[sel])), (-0.04, 0.03), transform=under,
+                           color=colour, clip_on=False,
+                           label=f"{what} entries ({int((is_feature == feat).sum())})")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.05), ncol=2, fontsize="small", frameon=False)
 
 
 def _stage_matrix(stage_ms: Mapping[str, Array], n: int) -> tuple[list[str], Array]:

@@ -52,6 +52,7 @@ def plot_trajectories(
     axes: tuple[int, int] | None = None,
     labels: tuple[str, str] = ("ground truth", "estimate (Sim(3)-aligned)"),
     connect: bool = True,
+    units: str = "ground-truth units",
 ) -> None:
     """Draw a top view of two trajectories on ``ax``.
 
@@ -62,6 +63,7 @@ def plot_trajectories(
     axes : the two world axes to show; default :func:`top_view_axes` of the ground truth.
     labels : legend labels.
     connect : draw thin lines between associated poses (needs N == M).
+    units : name of the length unit of the positions, on the axes.
     """
     G = np.asarray(gt_positions, dtype=np.float64).reshape(-1, 3)
     E = np.asarray(est_positions, dtype=np.float64).reshape(-1, 3)
@@ -74,8 +76,8 @@ def plot_trajectories(
     ax.plot(E[:, a], E[:, b], ".-", color="tab:blue", lw=1.0, ms=3, label=labels[1], zorder=3)
     if len(G):
         ax.plot(G[0, a], G[0, b], "o", color="k", ms=5, zorder=4)
-    ax.set_xlabel(_AXIS_NAMES[a])
-    ax.set_ylabel(_AXIS_NAMES[b])
+    ax.set_xlabel(f"{_AXIS_NAMES[a]} ({units})")
+    ax.set_ylabel(f"{_AXIS_NAMES[b]} ({units})")
     ax.set_aspect("equal", adjustable="datalim")
     ax.legend(loc="best", fontsize="small")
 
@@ -88,9 +90,9 @@ def plot_evaluation(ax: Any, result: EvaluationResult, axes: tuple[int, int] | N
     """
     if axes is None:
         axes = top_view_axes(result.gt_positions, result.gt_rotations)
-    plot_trajectories(ax, result.gt_positions, result.aligned_positions, axes)
+    plot_trajectories(ax, result.gt_positions, result.aligned_positions, axes, units=result.units)
     ax.set_title(
-        f"ATE {result.ate_rmse:.4g} ({result.ate_percent:.2f} % of path), "
+        f"ATE RMSE {result.ate_rmse:.4g} {result.units} ({result.ate_percent:.2f} % of path), "
         f"tracked {100 * result.tracked_fraction:.0f} %",
         fontsize="medium",
     )

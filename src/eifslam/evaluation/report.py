@@ -25,6 +25,8 @@ from ..errors import DatasetError, EifslamError, OutputError
 from ..io.files import atomic_path, atomic_write
 from ..io.ply import read_ply
 from ..io.trajectory import Trajectory, read_tum
+from .metrics import GT_UNITS
+from .report_tables import flatten as _flatten, table as _table
 
 Array = NDArray[np.float64]
 
@@ -210,10 +212,35 @@ def _map_sections(out_dir: Path, traj: Trajectory | None, points: Array | None,
     fig = _figure(figsize=(7.5, 6.5))
     plot_map_3d(fig.add_subplot(projection="3d"), C, P, colors, R)
     view.image, view.caption = _save(fig, out_dir, "map_3d.png"), caption
-    return [top, view]
+    if len(C) < 2:
+        return [top, view]
+    # the map near the cameras: what they looked at, without the far features (walls,
+    # distant points) that set the extent of the full view
+    close = _Section("Trajectory and map, close-up (the region the cameras travelled, with a margin)")
+    lo, hi = C.min(0), C.max(0)
+    pad = 0.3 * max(float((hi - lo).max()), 1e-9)
+    lo, hi = lo - pad, hi + pad
+    inside = int(np.all((P >= lo) & (P <= hi), axis=1).sum()) if len(P) else 0
+    fig = _figure(figsize=(7.5, 6.5))
+    plot_map_top(fig.add_subplot(), C, P, colors, R, limits=(lo, hi))
+    close.image = _save(fig, out_dir, "map_top_close.png")
+    close.caption = f"{inside} of the {len(P)} map features lie in this region; camera wedges show where they looked."
+    return [top, close, view]
 
 
-def _sparsity_section(out_dir: Path, info: sp.csr_array | None, notes: list[str]) -> _Section:
+def _read_layout(path: Path) -> NDArray[np.bool_]:
+    """Per state entry, whether it belongs to a feature, from ``state_layout.json``
+    (``{"kinds": "pff..."}``: one letter per state, a pose of 7 entries or a feature of 3)."""
+    data = json.loads(path.read_text())
+    kinds = data.get("kinds") if isinstance(data, dict) else None
+    if not isinstance(kinds, str) or set(kinds) - {"p", "f"}:
+        raise ValueError("'kinds' must be a string of 'p' and 'f'")
+    isf = np.frombuffer(kinds.encode(), np.uint8) == ord("f")
+    return np.repeat(isf, np.where(isf, 3, 7))
+
+
+def _sparsity_section(out_dir: Path, info: sp.csr_array | None, notes: list[str],
+                      is_feature: NDArray[np.bool_] | None = None) -> _Section:
     """Sparsity pattern of the final information matrix."""
     from .plots import plot_information_sparsity
 
@@ -224,7 +251,11 @@ def _sparsity_section(out_dir: Path, info: sp.csr_array | None, notes: list[str]
         sec.notes.append(f"The information matrix is empty ({info.shape[0]} × {info.shape[1]}).")
         return sec
     fig = _figure(figsize=(6.5, 6.5))
-    plot_information_sparsity(fig.add_subplot(), info)
+    if is_feature is not None and len(is_feature) != info.shape[0]:
+        sec.notes.append(f"state_layout.json describes {len(is_feature)} entries, the matrix has "
+                         f"{info.shape[0]}: the pose and feature blocks are not marked.")
+        is_feature = None
+    plot_information_sparsity(fig.add_subplot(), info, is_feature=is_feature)
     sec.image = _save(fig, out_dir, "information_sparsity.png")
     n = info.shape[0]
     nnz = int(sp.coo_array(info).count_nonzero())
@@ -266,7 +297,7 @@ def _timing_section(out_dir: Path, frames: FrameLog | None, notes: list[str]) ->
 
 
 def _ground_truth_section(out_dir: Path, traj: Trajectory | None, gt: Trajectory,
-                          points: Array | None, colors: NDArray[np.uint8] | None
+                          points: Array | None, colors: NDArray[np.uint8] | None, units: str
                           ) -> tuple[_Section, dict[str, Any] | None]:
     """Sim(3)-aligned estimate and map against ground truth; also the evaluation figures."""
     from .metrics import evaluate
@@ -277,7 +308,7 @@ def _ground_truth_section(out_dir: Path, traj: Trajectory | None, gt: Trajectory
         sec.notes.append("No estimated trajectory to compare with the ground truth.")
         return sec, None
     try:
-        result = evaluate(traj, gt)
+        result = evaluate(traj, gt, units=units)
     except EifslamError as exc:
         sec.notes.append(f"Evaluation impossible: {exc}")
         return sec, None
@@ -285,53 +316,19 @@ def _ground_truth_section(out_dir: Path, traj: Trajectory | None, gt: Trajectory
     fig = _figure(figsize=(7.5, 6.5))
     plot_aligned_map(fig.add_subplot(), result, P, colors)
     sec.image = _save(fig, out_dir, "ground_truth.png")
-    sec.caption = (f"ATE RMSE {result.ate_rmse:.6g} after a Sim(3) alignment (scale "
+    sec.caption = (f"ATE RMSE {result.ate_rmse:.6g} {result.units} after a Sim(3) alignment (scale "
                    f"{result.sim3.scale:.6g}); the {len(P)} map features are moved by the "
                    f"same Sim(3). {result.n_matched} of {result.n_ground_truth} ground-truth "
                    f"poses matched.")
     return sec, result.to_dict()
 
 
-def _flatten(d: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
-    """Nested dictionaries as ``("a.b", value)`` rows."""
-    rows: list[tuple[str, Any]] = []
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict):
-            rows.extend(_flatten(v, key + ".") if v else [(key, "{}")])
-        else:
-            rows.append((key, v))
-    return rows
-
-
-def _format(value: Any) -> str:
-    if value is None:
-        return "n/a"
-    if isinstance(value, bool):
-        return str(value).lower()
-    if isinstance(value, float):
-        return f"{value:.6g}"
-    if isinstance(value, list):
-        if len(value) <= 6 and all(isinstance(v, (int, float, str)) for v in value):
-            return "[" + ", ".join(_format(v) for v in value) + "]"
-        return f"[list of {len(value)}]"
-    return str(value)
-
-
-def _table(rows: list[tuple[str, Any]], table_id: str) -> str:
-    body = "\n".join(
-        f'<tr id="{table_id}-{html.escape(k, quote=True)}"><th>{html.escape(k)}</th>'
-        f"<td>{html.escape(_format(v))}</td></tr>"
-        for k, v in rows
-    )
-    return f'<table id="{table_id}">\n{body}\n</table>'
-
-
 _CSS = """
 body { font-family: sans-serif; max-width: 1250px; margin: 2em auto; padding: 0 1em; color: #222; }
 table { border-collapse: collapse; margin: 0.5em 0 1.5em; font-size: 0.9em; }
 th, td { border: 1px solid #ccc; padding: 0.2em 0.6em; text-align: left; }
-td { font-family: monospace; }
+td { font-family: monospace; } td.key { color: #888; font-size: 0.85em; }
+.headline { font-size: 1.25em; }
 figure { margin: 0 0 2em; } img { max-width: 100%; border: 1px solid #eee; }
 figcaption, .note { color: #555; font-size: 0.9em; } .note { font-style: italic; }
 """
@@ -345,17 +342,27 @@ def _html(title: str, out_dir: Path, summary: dict[str, Any] | None, summary_not
         f"<h1>{html.escape(title)}</h1>",
         f"<p>Output folder: <code>{html.escape(str(out_dir))}</code></p>",
     ]
+    units = str((evaluation or {}).get("units") or (summary or {}).get("ate_units") or GT_UNITS)
     if evaluation is not None:
-        parts.append(f'<p class="ate">ATE RMSE (Sim(3)-aligned): '
-                     f'<span id="ate-rmse">{evaluation["ate_rmse"]:.6g}</span></p>')
+        parts.append(f'<p class="ate headline">ATE RMSE (Sim(3)-aligned): '
+                     f'<span id="ate-rmse">{evaluation["ate_rmse"]:.6g}</span> {html.escape(units)}</p>')
+    box = (summary or {}).get("box_ratio_estimated")
+    if isinstance(box, (int, float)) and not isinstance(box, bool):
+        true = (summary or {}).get("box_ratio_true")
+        parts.append(f'<p class="headline">Box width:length <span id="box-ratio">{box:.3f}</span>'
+                     + (f" (true {true:.2f})" if isinstance(true, (int, float)) else "") + "</p>")
     parts.append("<h2>Summary (report.json)</h2>")
     parts += [f'<p class="note">{html.escape(n)}</p>' for n in summary_notes]
     if summary is not None:
-        parts.append(_table(_flatten(summary), "summary") if summary
+        shown = {k: v for k, v in summary.items() if k != "config"}
+        parts.append(_table(_flatten(shown), "summary", units) if summary
                      else '<p class="note">report.json is empty.</p>')
+        if isinstance(summary.get("config"), dict):
+            parts += ["<details><summary>Configuration of the run (report.json <code>config</code>)</summary>",
+                      _table(_flatten(summary["config"]), "config"), "</details>"]
     if evaluation is not None:
         parts += ["<h2>Evaluation against ground truth</h2>",
-                  _table(_flatten(evaluation), "evaluation")]
+                  _table(_flatten(evaluation), "evaluation", units)]
     for sec in sections:
         parts.append(f"<h2>{html.escape(sec.title)}</h2>")
         parts += [f'<p class="note">{html.escape(n)}</p>' for n in sec.notes]
@@ -370,7 +377,7 @@ def _html(title: str, out_dir: Path, summary: dict[str, Any] | None, summary_not
 
 
 def write_report(out_dir: str | Path, ground_truth: Trajectory | None = None,
-                 title: str = "eifslam run") -> Path:
+                 title: str = "eifslam run", units: str = GT_UNITS) -> Path:
     """Write ``out_dir/report.html`` with its figures in ``out_dir/figures/``.
 
     Parameters
@@ -381,6 +388,7 @@ def write_report(out_dir: str | Path, ground_truth: Trajectory | None = None,
         aligned to it by a Sim(3) and drawn against it with its ATE, the map moved by
         the same Sim(3).
     title : page title.
+    units : name of the ground truth's length unit (``"m"`` for the data sets eifslam reads).
 
     Returns
     -------
@@ -413,9 +421,10 @@ def write_report(out_dir: str | Path, ground_truth: Trajectory | None = None,
     sections = _map_sections(out, traj, points, colors, map_notes)
     evaluation = None
     if ground_truth is not None:
-        gt_section, evaluation = _ground_truth_section(out, traj, ground_truth, points, colors)
+        gt_section, evaluation = _ground_truth_section(out, traj, ground_truth, points, colors, units)
         sections.append(gt_section)
-    sections.append(_sparsity_section(out, info, info_notes))
+    layout = _load(out / "state_layout.json", _read_layout, info_notes) if (out / "state_layout.json").exists() else None
+    sections.append(_sparsity_section(out, info, info_notes, layout))
     sections.append(_timing_section(out, frames, frame_notes))
 
     path = out / "report.html"

@@ -109,9 +109,10 @@ class FrontEndConfig:
         The UT uses at most this many inliers (evenly subsampled) to bound its cost; the
         covariance is then scaled by ``n_used / n_inliers``.
     seed : int or None
-        Seed of OpenCV's random generator, set when a front end is made (FLANN's
-        randomised k-d trees and the RANSAC samplers draw from it), so that a run is
-        repeatable; None leaves it alone. A different seed is a different run: on long
+        Seed of OpenCV's random generator, set to ``seed + frame_id`` when each frame is
+        added (FLANN's randomised k-d trees and the RANSAC samplers draw from it), so
+        that a run is repeatable and a resumed session continues exactly as the
+        uninterrupted run; None leaves it alone. A different seed is a different run: on long
         sequences the results of runs differ by more than small configuration changes do.
     """
 

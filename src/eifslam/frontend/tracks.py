@@ -12,6 +12,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from ..errors import SessionError
+from ..estimation.statedict import take, take_ids
+
 IntArray = NDArray[np.int64]
 
 __all__ = ["TrackStore"]
@@ -35,6 +38,19 @@ class TrackStore:
         self._parent = np.zeros(0, np.int64)
         self._in_map = np.zeros(0, bool)
         self._length = np.zeros(0, np.int64)
+
+    def state_dict(self) -> dict:
+        """What a session keeps: ``parent``, ``in_map`` and ``length`` per id ever allocated."""
+        return {"parent": self._parent.copy(), "in_map": self._in_map.copy(), "length": self._length.copy()}
+
+    def load_state_dict(self, d) -> None:
+        """Restore :meth:`state_dict`, checked (:class:`~eifslam.errors.SessionError`)."""
+        parent = take_ids(d, "parent")
+        n = len(parent)
+        in_map, length = take(d, "in_map", bool, (n,)), take_ids(d, "length", n)
+        if np.any(parent > np.arange(n)):
+            raise SessionError("array 'parent' points to a younger track (merges point to the older id)")
+        self._parent, self._in_map, self._length = parent.copy(), in_map.copy(), length.copy()
 
     def __len__(self) -> int:
         """Number of ids ever allocated."""

@@ -1,9 +1,12 @@
 """Point clouds as PLY files (ASCII or binary little-endian), readable by MeshLab,
 CloudCompare, Open3D, ...
 
-Vertices have ``float x, y, z`` (``double`` on request) and optionally ``uchar red,
-green, blue``. :func:`read_ply` reads such vertex-only files back (any of the three PLY
-encodings, any vertex property order).
+The PLY format is the `plyfile <https://github.com/dranjan/python-plyfile>`_ library's
+job; this module checks what goes in and what comes out. Vertices have ``float x, y, z``
+(``double`` on request) and optionally ``uchar red, green, blue``. :func:`read_ply` reads
+the vertices of any PLY file back (any of the three encodings, any property order; other
+elements such as faces are ignored), and turns every way a file can be broken into one
+:class:`~eifslam.errors.DatasetError` naming it.
 """
 
 from __future__ import annotations
@@ -18,14 +21,6 @@ from .files import atomic_path
 
 __all__ = ["write_ply", "read_ply"]
 
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-
-
 def write_ply(
     path: str | Path,
     points: NDArray[np.floating],
@@ -33,7 +28,7 @@ def write_ply(
     binary: bool = True,
     double: bool = False,
 ) -> None:
-    """Write a coloured point cloud (atomically: see :func:`~.files.atomic_path`).
+    """Write a coloured point cloud.
 
     Parameters
     ----------
@@ -66,32 +61,19 @@ def write_ply(
     data["x"], data["y"], data["z"] = pts.T
     if colors is not None:
         data["red"], data["green"], data["blue"] = col.astype(np.uint8).T
-    ptype = "double" if double else "float"
-    header = [
-        "ply",
-        f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
-        "comment written by eifslam",
-        f"element vertex {len(pts)}",
-        f"property {ptype} x",
-        f"property {ptype} y",
-        f"property {ptype} z",
-    ]
-    if colors is not None:
-        header += ["property uchar red", "property uchar green", "property uchar blue"]
-    header.append("end_header")
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:  # a kill never leaves half a file
-        fh.write(("\n".join(header) + "\n").encode("ascii"))
-        if binary:
-            fh.write(data.tobytes())
-        else:
-            fmt = "%.9g %.9g %.9g" + (" %d %d %d" if colors is not None else "")
-            rows = pts if colors is None else np.hstack([pts, col.astype(np.float64)])
-            if len(rows):
-                np.savetxt(fh, rows, fmt=fmt)
+    from plyfile import PlyData, PlyElement
+
+    ply = PlyData([PlyElement.describe(data, "vertex")], text=not binary, byte_order="<",
+                  comments=["written by eifslam"])
+    try:
+        with atomic_path(path) as tmp:  # a kill never leaves half a file
+            ply.write(str(tmp))
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot write PLY file ({exc})") from None
 
 
 def read_ply(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.uint8] | None]:
-    """Read a vertex-only PLY point cloud.
+    """Read the vertices of a PLY point cloud.
 
     Returns
     -------
@@ -101,67 +83,34 @@ def read_ply(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.uint8] |
     Raises
     ------
     DatasetError
-        Missing file, bad header, list properties, or truncated data.
+        Missing file, not a PLY file, truncated data, no ``x, y, z`` vertex properties,
+        list or non-finite coordinates (one line naming the file).
     """
+    from plyfile import PlyData, PlyParseError
+
     path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: PLY file not found")
     try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: PLY file not found") from None
-    except OSError as exc:
-        raise DatasetError(f"{path}: cannot read PLY file ({exc.strerror or exc})") from None
-    try:
-        return _parse_ply(raw, path)
-    except (ValueError, IndexError, UnicodeDecodeError) as exc:  # a malformed header or body
-        raise DatasetError(f"{path}: malformed PLY file ({exc})") from None
-
-
-def _parse_ply(raw: bytes, path: Path) -> tuple[NDArray[np.float64], NDArray[np.uint8] | None]:
-    end = raw.find(b"end_header")
-    if not raw.startswith(b"ply") or end < 0:
-        raise DatasetError(f"{path}: not a PLY file (no 'ply' magic or 'end_header')")
-    body_start = raw.index(b"\n", end) + 1
-    header = raw[:end].decode("ascii", errors="replace").splitlines()
-    fmt, n_vertex, props, element = None, 0, [], None
-    for line in header[1:]:
-        tok = line.split()
-        if not tok or tok[0] in ("comment", "obj_info"):
-            continue
-        if tok[0] == "format":
-            fmt = tok[1]
-        elif tok[0] == "element":
-            element = tok[1]
-            if element == "vertex":
-                n_vertex = int(tok[2])
-                if n_vertex < 0:
-                    raise DatasetError(f"{path}: negative vertex count {n_vertex}")
-            elif int(tok[2]) > 0:
-                raise DatasetError(f"{path}: only vertex elements are supported, found {tok[1]}")
-        elif tok[0] == "property" and element == "vertex":
-            if tok[1] == "list" or tok[1] not in _PLY_TYPES:
-                raise DatasetError(f"{path}: unsupported vertex property {line.strip()!r}")
-            props.append((tok[2], _PLY_TYPES[tok[1]]))
-    names = [n for n, _ in props]
-    if not {"x", "y", "z"} <= set(names):
+        with open(path, "rb") as fh:
+            ply = PlyData.read(fh, mmap=False)
+        vertex = ply["vertex"].data if "vertex" in ply else None
+    except (PlyParseError, ValueError, TypeError, IndexError, KeyError, EOFError, OSError, MemoryError,
+            OverflowError, UnicodeDecodeError) as exc:
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        raise DatasetError(f"{path}: not a readable PLY file ({msg})") from None
+    if vertex is None:
+        raise DatasetError(f"{path}: PLY file has no vertex element")
+    names = set(vertex.dtype.names or ())
+    if not {"x", "y", "z"} <= names:
         raise DatasetError(f"{path}: vertex properties x, y, z missing")
-    if fmt == "ascii":
-        text = raw[body_start:].decode("ascii").split()
-        vals = np.array(text[: n_vertex * len(props)], dtype=np.float64)
-        if vals.size != n_vertex * len(props):
-            raise DatasetError(f"{path}: truncated data ({vals.size} values)")
-        table = vals.reshape(n_vertex, len(props))
-        col = {n: table[:, k] for k, n in enumerate(names)}
-    elif fmt in ("binary_little_endian", "binary_big_endian"):
-        order = "<" if fmt == "binary_little_endian" else ">"
-        dtype = np.dtype([(n, order + t) for n, t in props])
-        if len(raw) - body_start < dtype.itemsize * n_vertex:
-            raise DatasetError(f"{path}: truncated data")
-        arr = np.frombuffer(raw, dtype=dtype, count=n_vertex, offset=body_start)
-        col = {n: arr[n] for n in names}
-    else:
-        raise DatasetError(f"{path}: unknown PLY format {fmt!r}")
-    pts = np.stack([col["x"], col["y"], col["z"]], -1).astype(np.float64).reshape(-1, 3)
-    colors = None
-    if {"red", "green", "blue"} <= set(names):
-        colors = np.stack([col["red"], col["green"], col["blue"]], -1).astype(np.uint8).reshape(-1, 3)
+    try:
+        pts = np.stack([vertex["x"], vertex["y"], vertex["z"]], -1).astype(np.float64).reshape(-1, 3)
+        colors = None
+        if {"red", "green", "blue"} <= names:
+            colors = np.stack([vertex["red"], vertex["green"], vertex["blue"]], -1).astype(np.uint8).reshape(-1, 3)
+    except (TypeError, ValueError) as exc:  # list properties
+        raise DatasetError(f"{path}: unsupported vertex properties ({exc})") from None
+    if not np.all(np.isfinite(pts)):
+        raise DatasetError(f"{path}: vertex coordinates contain NaN or infinite values")
     return pts, colors

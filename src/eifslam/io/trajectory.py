@@ -4,7 +4,8 @@ A TUM trajectory file has one pose per line, ``timestamp tx ty tz qx qy qz qw``:
 camera-to-world pose (position of the camera centre in the world, orientation ``R_wc``)
 with the quaternion **scalar last**. Inside eifslam quaternions are scalar first
 (``[w, x, y, z]``, see :mod:`eifslam.geometry`); the conversion happens only here.
-Lines starting with ``#`` and blank lines are skipped. This is the format ``evo`` reads.
+Lines starting with ``#`` and blank lines are skipped. This is the format ``evo`` reads;
+:func:`write_tum` writes through evo's ``file_interface``.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from typing import TextIO
 import numpy as np
 from numpy.typing import NDArray
 
-from .files import atomic_write, read_text
+from .files import atomic_path, read_text
 from ..errors import DatasetError, OutputError
 from ..geometry.rotations import quat_normalize, quat_to_rotmat, quat_wxyz_to_xyzw, quat_xyzw_to_wxyz
 
@@ -193,19 +194,28 @@ def write_tum(
     quats_wxyz : (N, 4) orientations ``R_wc`` as ``[w, x, y, z]``; written as ``qx qy qz qw``.
     header : comment written as the first line (``None`` for none).
 
+    The poses are written by evo (``file_interface.write_tum_trajectory_file``, full
+    precision), the tool the files are meant for. Reading stays here: evo's reader checks
+    the width of the first row only, refuses an empty file and names no line, where
+    :func:`parse_tum` names the file and line of every problem.
+
     Raises
     ------
     DatasetError
         Arrays of mismatched shapes, non-finite values or non-increasing timestamps.
     """
     traj = Trajectory(timestamps, positions, quats_wxyz)
-    q = quat_wxyz_to_xyzw(traj.quats_wxyz)
-    lines = [] if header is None else [f"# {header}"]
-    for t, p, qq in zip(traj.timestamps, traj.positions, q):
-        vals = " ".join(f"{v:.9f}" for v in (*p, *qq))
-        lines.append(f"{t:.9f} {vals}")
-    atomic_write(path, "\n".join(lines) + "\n")
+    with atomic_path(path) as tmp:  # a kill never leaves half a file
+        with open(tmp, "w") as fh:
+            if header is not None:
+                fh.write(f"# {header}\n")
+            if len(traj):
+                from evo.core.trajectory import PoseTrajectory3D
+                from evo.tools import file_interface
 
+                file_interface.write_tum_trajectory_file(fh, PoseTrajectory3D(
+                    positions_xyz=traj.positions, orientations_quat_wxyz=traj.quats_wxyz,
+                    timestamps=traj.timestamps))
 
 class TumAppender:
     """A TUM file written one pose at a time, each line flushed to the operating system.

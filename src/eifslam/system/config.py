@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from enum import Enum
 from typing import Any, Mapping
 
 from ..errors import ConfigError
@@ -264,6 +265,15 @@ class SlamConfig:
         if self.system.reobserve_radius_px is not None:
             return float(self.system.reobserve_radius_px)
         return 15.0 if self.float_descriptors else 0.0
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """Every setting as plain values (enums as their strings): what :meth:`from_dict`
+        takes back, and safe to write as JSON or YAML."""
+        def plain(v: Any) -> Any:
+            return v.value if isinstance(v, Enum) else list(v) if isinstance(v, tuple) else v
+
+        return {sec: {k: plain(v) for k, v in dataclasses.asdict(getattr(self, sec)).items()}
+                for sec in ("frontend", "filter", "system")}
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> "SlamConfig":

@@ -106,6 +106,47 @@ class Keyframes:
         self._last_seen: IntArray = np.zeros(0, np.int64)
         self._poses: dict[int, MapPose] = {}
 
+    # -- sessions -----------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """What a session keeps: the reference keyframe, its time and map features, and
+        every map pose (fields of :class:`MapPose` as arrays, observations concatenated)."""
+        mps = [self._poses[k] for k in sorted(self._poses)]
+        return {
+            "last": self.last, "last_time": float(self._last_time), "last_seen": self._last_seen.copy(),
+            "frame_id": np.array([m.frame_id for m in mps], np.int64),
+            "reference": np.array([m.reference for m in mps], np.int64),
+            "p": np.array([m.p for m in mps], float).reshape(-1, 3),
+            "q": np.array([m.q for m in mps], float).reshape(-1, 4),
+            "covariance": np.array([m.covariance for m in mps], float).reshape(-1, 6, 6),
+            "n_obs": np.array([len(m.track_ids) for m in mps], np.int64),
+            "track_ids": np.concatenate([m.track_ids for m in mps]).astype(np.int64) if mps else np.zeros(0, np.int64),
+            "uv": np.concatenate([m.uv for m in mps]).reshape(-1, 2).astype(float) if mps else np.zeros((0, 2)),
+            "figures": np.array([[m.inlier_fraction, m.parallax_deg, m.tracked_fraction] for m in mps],
+                                float).reshape(-1, 3),
+        }
+
+    def load_state_dict(self, d) -> None:
+        """Restore :meth:`state_dict`, checked (:class:`~eifslam.errors.SessionError`)."""
+        from ..errors import SessionError
+        from ..estimation.statedict import take, take_float, take_ids, take_int
+
+        last = d.get("last") if isinstance(d, dict) else None
+        last = None if last is None else take_int(d, "last", 0)
+        if last is not None and not self.filter.layout.has_pose(last):
+            raise SessionError(f"keyframe {last} is not a pose of the filter")
+        fid = take_ids(d, "frame_id")
+        m = len(fid)
+        ref, n_obs = take_ids(d, "reference", m), take_ids(d, "n_obs", m)
+        p, q = take(d, "p", np.float64, (m, 3)), take(d, "q", np.float64, (m, 4))
+        cov, fig = take(d, "covariance", np.float64, (m, 6, 6)), take(d, "figures", np.float64, (m, 3))
+        n = int(n_obs.sum())
+        tids, uv = take_ids(d, "track_ids", n), take(d, "uv", np.float64, (n, 2))
+        ends = np.cumsum(n_obs)
+        self.last, self._last_time, self._last_seen = last, take_float(d, "last_time"), take_ids(d, "last_seen").copy()
+        self._poses = {int(f): MapPose(int(f), int(r), pp.copy(), qq.copy(), c.copy(), tids[b - k:b].copy(),
+                                       uv[b - k:b].copy(), float(g[0]), float(g[1]), float(g[2]))
+                       for f, r, pp, qq, c, g, k, b in zip(fid, ref, p, q, cov, fig, n_obs, ends)}
+
     # -- queries ------------------------------------------------------------------
     @property
     def enabled(self) -> bool:

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from ..estimation.initialisation import triangulate
 from ..estimation.measurements import FeatureObservations
+from ..estimation.statedict import take, take_ids
 from ..geometry.camera import PinholeCamera
 from .config import SlamConfig
 
@@ -70,6 +71,30 @@ class Mapper:
         self.filter = backend
         self._track_obs: dict[int, list[tuple[int, Array]]] = {}
         self._colors: dict[int, NDArray[np.uint8]] = {}
+
+    # -- sessions -----------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """What a session keeps: every recorded observation (track, frame, pixel; per
+        track in recording order) and the feature colours."""
+        obs = [(t, k, u) for t, hist in self._track_obs.items() for k, u in hist]
+        return {
+            "obs_track": np.array([t for t, _, _ in obs], np.int64),
+            "obs_frame": np.array([k for _, k, _ in obs], np.int64),
+            "obs_uv": np.array([u for _, _, u in obs], float).reshape(-1, 2),
+            "color_ids": np.array(list(self._colors), np.int64),
+            "colors": np.array(list(self._colors.values()), np.uint8).reshape(-1, 3),
+        }
+
+    def load_state_dict(self, d) -> None:
+        """Restore :meth:`state_dict`, checked (:class:`~eifslam.errors.SessionError`)."""
+        tr = take_ids(d, "obs_track")
+        fr, uv = take_ids(d, "obs_frame", len(tr)), take(d, "obs_uv", np.float64, (len(tr), 2))
+        ci = take_ids(d, "color_ids")
+        col = take(d, "colors", np.uint8, (len(ci), 3))
+        self._track_obs = {}
+        for t, k, u in zip(tr.tolist(), fr.tolist(), uv):
+            self._track_obs.setdefault(t, []).append((k, u.copy()))
+        self._colors = {t: c.copy() for t, c in zip(ci.tolist(), col)}
 
     # -- queries ------------------------------------------------------------------
     def colors(self, track_ids) -> NDArray[np.uint8]:

@@ -12,6 +12,7 @@ import contextlib
 import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Iterator
 
 from tqdm import tqdm
@@ -21,7 +22,7 @@ from .config import SlamConfig
 from .finishing import FinishReport
 from .slam import Slam, TrackResult
 
-__all__ = ["RunResult", "request_stop", "run_sequence", "stop_requests"]
+__all__ = ["RunResult", "request_stop", "resume_index", "run_sequence", "stop_requests"]
 
 
 class _StopRequest:
@@ -91,8 +92,18 @@ class RunResult:
     scale_error: str | None = None
 
 
+def resume_index(seq, slam: Slam) -> int:
+    """The first frame of ``seq`` after the last one ``slam`` has seen (by timestamp): where
+    a loaded session continues on the same source (``len(seq)`` when it has them all)."""
+    if not slam.results:
+        return 0
+    last = slam.results[-1].timestamp
+    return next((k for k, f in enumerate(seq.frames) if f.timestamp > last), len(seq))
+
+
 def run_sequence(seq, config: SlamConfig, max_frames: int | None = None, scale: tuple | None = None,
-                 quiet: bool = False, on_frame: Callable[[TrackResult], None] | None = None) -> RunResult:
+                 quiet: bool = False, on_frame: Callable[[TrackResult], None] | None = None, *,
+                 slam: Slam | None = None, save_session: str | Path | None = None) -> RunResult:
     """Run SLAM over ``seq`` (an :mod:`eifslam.io` sequence, or anything with ``camera``,
     ``frames[k].timestamp``, ``load(k)`` and ``len``), then :meth:`Slam.finish`.
 
@@ -109,22 +120,42 @@ def run_sequence(seq, config: SlamConfig, max_frames: int | None = None, scale: 
     on_frame : callable, optional
         Called with each frame's :class:`TrackResult` as it is tracked (e.g. to append
         the pose to a file, so that a killed run keeps it).
+    slam : Slam, optional
+        A loaded session to continue (:meth:`Slam.load`): its configuration is used
+        (``config`` is ignored) and tracking starts at :func:`resume_index`; its camera
+        must be the sequence's. ``max_frames`` then counts the new frames.
+    save_session : path, optional
+        Save the session there after the last frame, before :meth:`Slam.finish` (so that
+        a resumed run finishes as the uninterrupted one would). A failure to save is
+        reported in ``stopped``; the run's outputs are not lost.
 
     Returns
     -------
     RunResult
+
+    Raises
+    ------
+    EifslamError
+        When ``slam`` was made with another camera than the sequence's.
     """
     with stop_requests():
-        return _run(seq, config, max_frames, scale, quiet, on_frame)
+        return _run(seq, config, max_frames, scale, quiet, on_frame, slam, save_session)
 
 
 def _run(seq, config: SlamConfig, max_frames: int | None, scale: tuple | None, quiet: bool,
-         on_frame: Callable[[TrackResult], None] | None) -> RunResult:
-    slam = Slam(seq.camera, config)
-    n = len(seq) if max_frames is None else min(len(seq), max_frames)
+         on_frame: Callable[[TrackResult], None] | None, slam: Slam | None,
+         save_session: str | Path | None) -> RunResult:
+    if slam is None:
+        slam, start = Slam(seq.camera, config), 0
+    else:
+        if slam.camera != seq.camera:
+            raise EifslamError(f"the session was made with another camera ({slam.camera}) than the "
+                               f"source's ({seq.camera})")
+        start = resume_index(seq, slam)
+    n = len(seq) if max_frames is None else min(len(seq), start + max_frames)
     t0 = time.perf_counter()
     stopped = None
-    bar = tqdm(range(n), desc="eifslam", unit="frame", disable=quiet, file=sys.stderr)
+    bar = tqdm(range(start, n), desc="eifslam", unit="frame", disable=quiet, file=sys.stderr)
     try:
         for k in bar:
             if _STOP.reason is not None:
@@ -146,6 +177,12 @@ def _run(seq, config: SlamConfig, max_frames: int | None, scale: tuple | None, q
         bar.close()
     if stopped:
         print(f"eifslam: {stopped}; writing what was estimated so far", file=sys.stderr)
+    if save_session is not None:
+        try:
+            slam.save(save_session)
+        except EifslamError as exc:
+            stopped = (stopped + "; " if stopped else "") + f"session not saved: {exc}"
+            print(f"eifslam: session not saved: {exc}", file=sys.stderr)
     # after Ctrl-C the user wants out: no retrying of lost frames, only the mode's step
     fin = slam.finish(retry=stopped is None or stopped.startswith("stopped"))
     if fin.retry_error is not None:

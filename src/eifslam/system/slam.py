@@ -78,6 +78,24 @@ class TrackResult:
     state_dim: int = 0
     keyframe: bool = True
 
+    @property
+    def T_wc(self) -> Array | None:
+        """(4, 4) camera-to-world transform ``[[R_wc, p], [0, 1]]`` of this result (world
+        units), or None when the frame has no pose."""
+        return None if self.position is None else pose_matrix(self.position, self.quat_wxyz)
+
+
+def pose_matrix(p: Array, q_wxyz: Array) -> Array:
+    """(4, 4) homogeneous camera-to-world transform from a centre ``p (3,)`` and ``q_wc
+    (4,)`` ``[w, x, y, z]``: maps camera-frame points (x right, y down, z forward) to the
+    world frame."""
+    from ..geometry.rotations import quat_to_rotmat
+
+    T = np.eye(4)
+    T[:3, :3] = quat_to_rotmat(np.asarray(q_wxyz, float))
+    T[:3, 3] = np.asarray(p, float)
+    return T
+
 
 class Slam:
     """Monocular SLAM with the exactly sparse EIF (ORB-SLAM's ``System``).
@@ -145,6 +163,16 @@ class Slam:
         order = np.argsort(ids, kind="stable")
         t = np.array([self._timestamps[i] for i in ids])[order]
         return t, P[order], Q[order]
+
+    def T_wc(self, frame_id: int) -> Array:
+        """(4, 4) camera-to-world transform of a tracked frame from the current estimate
+        (after smoothing or bundle adjustment: theirs). :class:`~eifslam.errors.EstimatorError`
+        when the frame has no pose. A frame between keyframes has the pose the map gave it."""
+        mp = self.keyframes.get(frame_id)
+        if mp is not None:
+            return pose_matrix(mp.p, mp.q)
+        self.filter.complete_estimate()
+        return pose_matrix(*self.filter.pose(frame_id))
 
     def map(self) -> tuple[NDArray[np.int64], Array, NDArray[np.uint8]]:
         """Map feature ids ``(F,)``, positions ``(F, 3)`` and RGB colours ``(F, 3)``."""
@@ -380,6 +408,17 @@ class Slam:
         return s
 
     # -- sessions -----------------------------------------------------------------
+    @property
+    def waiting(self) -> list[int]:
+        """Frames without a pose that wait for the first baseline (placed once the map exists)."""
+        return list(self._waiting)
+
+    def restore(self, results: list[TrackResult], waiting: list[int]) -> None:
+        """Set the per-image record of a loaded session (:func:`~.session.load_session`)."""
+        self.results = list(results)
+        self._timestamps = {r.frame_id: r.timestamp for r in self.results}
+        self._waiting = [int(j) for j in waiting]
+
     def save(self, path: str | Path) -> None:
         """Save the whole session (filter, front end, results) to a file
         (:func:`~.session.save_session`)."""

@@ -16,6 +16,8 @@ from numpy.typing import NDArray
 
 from ..estimation.initialisation import pose_from_relative
 from ..estimation.localisation import localise_pose
+from ..estimation.measurements import pack_relative, unpack_relative
+from ..estimation.statedict import sub, take_float
 from ..frontend.results import RelativePoseResult
 from ..geometry.camera import PinholeCamera
 from .config import SlamConfig
@@ -89,6 +91,16 @@ class Tracker:
         self.mapper = mapper
         self.rejected_relative: list = []
         self._last_step = config.system.scale_distance
+
+    # -- sessions -----------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """What a session keeps: the refused relative poses and the last step length."""
+        return {"rejected_relative": pack_relative(self.rejected_relative), "last_step": float(self._last_step)}
+
+    def load_state_dict(self, d) -> None:
+        """Restore :meth:`state_dict`, checked (:class:`~eifslam.errors.SessionError`)."""
+        self.rejected_relative = unpack_relative(sub(d, "rejected_relative"))
+        self._last_step = take_float(d, "last_step")
 
     # -- references ---------------------------------------------------------------
     def nearest_known(self, k: int) -> list[int]:
