@@ -1,12 +1,15 @@
 """The front end: everything between an image and the measurements the filter fuses.
 
-One entry point per image (:meth:`FrontEnd.add_frame`), then queries by frame id:
+One entry point per image (:meth:`FrontEnd.add_frame`, which is :meth:`FrontEnd.detect`,
+thread-safe and free of the front end's state, then :meth:`FrontEnd.add_features`), then
+queries by frame id:
 keypoints with track ids, tracks common to two frames, the ``Ωm`` observations of a frame
 (``Zm``) and the relative pose of two frames from their ``Ωp`` tracks (``ZR``, ``ZT``).
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
 
@@ -63,8 +66,9 @@ class FrontEnd:
         self.config = config
         if config.seed is not None:
             cv2.setRNGSeed(int(config.seed))
-        self._detector = make_detector(config)
-        self._matcher = DescriptorMatcher(config.ratio, config.mutual)
+        self._local = threading.local()  # one OpenCV detector per thread (see detect)
+        self._local.detector = make_detector(config)  # made now: a bad detector fails here
+        self._matcher = self._make_matcher()
         self._tracks = TrackStore()
         self._frames: dict[int, _Frame] = {}
         self._desc: dict[int, NDArray] = {}
@@ -74,17 +78,22 @@ class FrontEnd:
 
     # ------------------------------------------------------------------ pickling
     def __getstate__(self) -> dict:
-        """Pickle without the OpenCV detector and matcher (they do not pickle); they are
+        """Pickle without the OpenCV detectors and matcher (they do not pickle); they are
         recreated from the config when loaded (:meth:`__setstate__`)."""
         state = self.__dict__.copy()
-        state["_detector"] = None
+        state["_local"] = None
         state["_matcher"] = None
         return state
 
     def __setstate__(self, state: dict) -> None:
+        state.pop("_detector", None)  # sessions saved before detectors were per thread
         self.__dict__.update(state)
-        self._detector = make_detector(self.config)
-        self._matcher = DescriptorMatcher(self.config.ratio, self.config.mutual)
+        self._local = threading.local()
+        self._matcher = self._make_matcher()
+
+    def _make_matcher(self) -> DescriptorMatcher:
+        c = self.config
+        return DescriptorMatcher(c.ratio, c.mutual, c.flann_trees, c.flann_checks)
 
     # ------------------------------------------------------------------ queries
     @property
@@ -166,14 +175,47 @@ class FrontEnd:
         return estimate_relative_pose(ui, uj, self.camera, self.config, int(i), int(j), ids)
 
     # ----------------------------------------------------------------- updates
-    def add_frame(self, image: np.ndarray, frame_id: int) -> FrameResult:
-        """Detect features, match them against the previous frame(s), extend/create tracks.
+    def detect(self, image: np.ndarray) -> Features:
+        """Detect and describe the keypoints of an image, without changing the front end.
+
+        Thread-safe: each calling thread uses its own OpenCV detector (made on its first
+        call), and nothing of the front end's state is read but its camera and config, so
+        a worker thread may detect the next frames while another thread adds features
+        (:meth:`add_features`). The same image always gives the same features.
 
         Parameters
         ----------
         image : ndarray
             ``(H, W)`` or ``(H, W, 3|4)`` image of the camera's size (``uint8``, ``uint16``
             or float in [0, 1]).
+
+        Returns
+        -------
+        Features
+            Undistorted and raw pixels ``(N, 2)``, descriptors ``(N, D)``, and the time
+            the detection took (``detect_ms``).
+
+        Raises
+        ------
+        ImageError
+            On unreadable input (None, wrong dtype, shape or size).
+        """
+        detector = getattr(self._local, "detector", None)
+        if detector is None:
+            detector = self._local.detector = make_detector(self.config)
+        return detect_features(image, self.camera, self.config, detector)
+
+    def add_frame(self, image: np.ndarray | Features, frame_id: int) -> FrameResult:
+        """Detect features, match them against the previous frame(s), extend/create tracks.
+
+        :meth:`detect` followed by :meth:`add_features`.
+
+        Parameters
+        ----------
+        image : ndarray or Features
+            ``(H, W)`` or ``(H, W, 3|4)`` image of the camera's size (``uint8``, ``uint16``
+            or float in [0, 1]); or the :class:`Features` :meth:`detect` gave for it
+            (detected ahead, e.g. in a worker thread), which are then added as they are.
         frame_id : int
             New, unique frame id.
 
@@ -191,8 +233,40 @@ class FrontEnd:
         fid = int(frame_id)
         if fid in self._frames:
             raise EstimatorError(f"frame {fid} was already added to the front end")
-        t0 = time.perf_counter()
-        feats = detect_features(image, self.camera, self.config, self._detector)
+        feats = image if isinstance(image, Features) else self.detect(image)
+        return self.add_features(feats, fid)
+
+    def add_features(self, features: Features, frame_id: int) -> FrameResult:
+        """Match detected features against the previous frame(s), extend/create tracks.
+
+        The part of :meth:`add_frame` after the detection: descriptor matching against
+        the last ``match_window`` frames with the epipolar RANSAC, track extension, new
+        tracks split into ``Ωp``/``Ωm``. Must be called in frame order (from one thread).
+
+        Parameters
+        ----------
+        features : Features
+            From :meth:`detect` (for an image of this front end's camera and config).
+        frame_id : int
+            New, unique frame id.
+
+        Returns
+        -------
+        FrameResult
+            ``timings_ms`` has ``detect`` (``features.detect_ms``) and ``match``.
+
+        Raises
+        ------
+        EstimatorError
+            When ``frame_id`` is already stored, or ``features`` is not a
+            :class:`Features`.
+        """
+        fid = int(frame_id)
+        if fid in self._frames:
+            raise EstimatorError(f"frame {fid} was already added to the front end")
+        if not isinstance(features, Features):
+            raise EstimatorError(f"add_features takes Features, got {type(features).__name__}")
+        feats = features
         t1 = time.perf_counter()
         ids = np.full(len(feats), -1, np.int64)
         previous = [p for p in reversed(self._order) if p in self._desc][: self.config.match_window]
@@ -215,7 +289,7 @@ class FrontEnd:
         else:
             ok, reason = True, Reason.OK
         return FrameResult(fid, ok, reason, len(feats), int(n_matches), int(new.sum()),
-                           {"detect": (t1 - t0) * 1e3, "match": (t2 - t1) * 1e3})
+                           {"detect": float(feats.detect_ms), "match": (t2 - t1) * 1e3})
 
     def _epipolar_matches(
         self, uv_a: Array, d_a: NDArray, uv_b: Array, d_b: NDArray
