@@ -15,7 +15,8 @@ configuration but for the detector and the ``--set`` front-end settings. Per run
 records
 
 * the end-to-end time (opening the source to the written outputs) and fps, against the
-  camera's frame rate (from the timestamps);
+  camera's frame rate (from the timestamps), and the process's CPU time over the same span
+  (all threads; on a machine shared with other jobs it varies less than wall time);
 * for each stage (``detect, match, relative_pose, covariance, init, fuse, recover, total``
   of ``TrackResult.timings_ms``, plus ``wait``/``load``: the time the tracking thread
   waited for the prefetching worker, or decoded the image itself) the median and 95th
@@ -206,19 +207,21 @@ def run_one(source: Path, dataset: str, detector: str, out_dir: Path, settings: 
         from eifslam.system.runner import run_sequence
 
         config = SlamConfig().replace(frontend={"detector": detector, **dict(settings)}, system={"mode": "filter"})
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         seq = open_source(source)
         run = run_sequence(seq, config, max_frames=max_frames, quiet=True, prefetch=prefetch)
         gt = seq.ground_truth() if getattr(seq, "has_ground_truth", False) else None
         extra = {"source": str(source), **({"stopped": run.stopped} if run.stopped else {})}
         rep = write_outputs(run.slam, out_dir, run.seconds, gt, extra, html=False)
         seconds = time.perf_counter() - t0
+        cpu = time.process_time() - c0
         frames = json.loads((out_dir / "frames.json").read_text())["frames"]
         n = len(frames)
         ts = [f["timestamp"] for f in frames]
         rate = camera_rate_hz(ts)
         row.update(frames=n, frames_tracked=rep.get("frames_tracked"), map_features=rep.get("map_features"),
                    seconds=seconds, fps=n / seconds if seconds > 0 else None, loop_seconds=run.seconds,
+                   cpu_seconds=cpu, cpu_ms_per_frame=1e3 * cpu / n if n else None,
                    camera_hz=rate, realtime_factor=(n / seconds) / rate if rate and seconds > 0 else None,
                    prefetch=config.frontend.prefetch if prefetch is None else prefetch,
                    ate_filter=rep.get("ate_rmse"), stages=stage_stats(frames), flatness=flatness(frames),
@@ -241,7 +244,7 @@ def run_one(source: Path, dataset: str, detector: str, out_dir: Path, settings: 
     return row
 
 
-HEADERS = ("data set", "detector", "frames", "tracked", "s", "fps", "camera Hz", "ATE filter", "ATE smooth",
+HEADERS = ("data set", "detector", "frames", "tracked", "s", "fps", "camera Hz", "CPU ms/frame", "ATE filter", "ATE smooth",
            "detect ms", "match ms", "rel. pose ms", "cov. ms", "init ms", "fuse ms", "recover ms",
            "total ms", "wait ms", "last/first 10%", "note")
 
@@ -256,7 +259,8 @@ def table_row(row: Mapping[str, Any]) -> list[str]:
 
     name = row.get("dataset", "") + (f" [{row['tag']}]" if row.get("tag") else "")
     return [name, str(row.get("detector")), fmt(row.get("frames")), fmt(row.get("frames_tracked")),
-            fmt(row.get("seconds")), fmt(row.get("fps")), fmt(row.get("camera_hz")), fmt(row.get("ate_filter")),
+            fmt(row.get("seconds")), fmt(row.get("fps")), fmt(row.get("camera_hz")),
+            fmt(row.get("cpu_ms_per_frame")), fmt(row.get("ate_filter")),
             fmt(row.get("ate_smooth")), *(stage(s) for s in ("detect", "match", "relative_pose", "covariance",
                                                               "init", "fuse", "recover", "total", "wait")),
             fmt((row.get("flatness") or {}).get("last_over_first")),

@@ -82,6 +82,7 @@ def test_realtime_smoke(tmp_path, capsys):
     assert rc == 0
     assert (row["dataset"], row["detector"], row["frames"], row["settings"]) == ("tiny", "sift", 5, {"max_features": 500})
     assert row["frames_tracked"] >= 4 and np.isfinite(row["ate_filter"]) and np.isfinite(row["ate_smooth"])
+    assert row["cpu_seconds"] > 0 and row["cpu_ms_per_frame"] > 0
     assert row["fps"] > 0 and row["camera_hz"] == pytest.approx(2.0)  # the scene: a frame every 0.5 s
     for s in ("detect", "match", "total", "wait"):
         assert row["stages"][s]["n"] >= 4 and row["stages"][s]["p95"] >= row["stages"][s]["median"] > 0
