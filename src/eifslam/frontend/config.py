@@ -61,6 +61,13 @@ class FrontEndConfig:
     sift_octave_layers : int
         SIFT scales per octave (3, OpenCV's default; 2 is ~10-25% faster with the same
         relative-pose accuracy on kitti-seq1 but tracks fewer features).
+    sift_contrast_threshold : float > 0
+        SIFT's contrast threshold (OpenCV's ``contrastThreshold``, 0.04 by default; OpenCV
+        divides it by ``sift_octave_layers``): weaker extrema are dropped.
+    detect_scale : float in (0, 1]
+        Images are resized by this factor (``INTER_AREA``) before detection and the
+        keypoints scaled back to full-resolution pixels (1: detect at full resolution).
+        Colours and the Laplacian sign are taken from the full-resolution image.
     color_order : {"bgr", "rgb"}
         Channel order of 3-channel input images (OpenCV's ``imread`` gives BGR).
     map_fraction : float in [0, 1]
@@ -70,6 +77,10 @@ class FrontEndConfig:
         Lowe's ratio test threshold (best / second-best descriptor distance).
     mutual : bool
         Keep only mutual nearest neighbours.
+    flann_trees : int >= 1
+        Randomised k-d trees of the FLANN index (float descriptors: SIFT, SURF).
+    flann_checks : int >= 1
+        Leaves FLANN visits per query (more: closer to exact nearest neighbours, slower).
     match_window : int >= 1
         A new frame is matched against this many previous frames (1 = previous only; 3
         by default); older frames only see keypoints still unmatched, to recover tracks
@@ -108,6 +119,11 @@ class FrontEndConfig:
     ut_max_points : int >= 5
         The UT uses at most this many inliers (evenly subsampled) to bound its cost; the
         covariance is then scaled by ``n_used / n_inliers``.
+    prefetch : int >= 0
+        How many frames ahead :func:`eifslam.system.runner.run_sequence` decodes and
+        detects in a worker thread while the current frame is matched and fused (a
+        pipelined front end; the results are those of the sequential order). 0: no
+        worker thread, everything in the calling thread.
     seed : int or None
         Seed of OpenCV's random generator, set to ``seed + frame_id`` when each frame is
         added (FLANN's randomised k-d trees and the RANSAC samplers draw from it), so
@@ -120,12 +136,16 @@ class FrontEndConfig:
     detector: Detector = Detector.SIFT
     max_features: int = 2000
     sift_octave_layers: int = 3
+    sift_contrast_threshold: float = 0.04
+    detect_scale: float = 1.0
     color_order: str = "bgr"
     # split of tracks between relative poses (Ωp) and the map (Ωm)
     map_fraction: float = 0.5
     # association
     ratio: float = 0.8
     mutual: bool = True
+    flann_trees: int = 4
+    flann_checks: int = 48
     match_window: int = 3
     ransac_threshold_px: float = 1.0
     ransac_confidence: float = 0.999
@@ -142,6 +162,8 @@ class FrontEndConfig:
     sigma_px: float = 1.0
     covariance: CovarianceMethod = CovarianceMethod.FAST
     ut_max_points: int = 300
+    # pipelining (the runner)
+    prefetch: int = 2
     # repeatability
     seed: int | None = 0
 
@@ -168,6 +190,9 @@ class FrontEndConfig:
             "min_common": 5,
             "refine_iterations": 1,
             "ut_max_points": 5,
+            "flann_trees": 1,
+            "flann_checks": 1,
+            "prefetch": 0,
         }
         for key, lo in ints.items():
             v = getattr(self, key)
@@ -184,6 +209,8 @@ class FrontEndConfig:
             "min_parallax_deg": lambda v: 0.0 <= v < 90.0,
             "min_rotation_residual_deg": lambda v: 0.0 <= v < 90.0,
             "sigma_px": lambda v: 0.0 < v < 1e3,
+            "sift_contrast_threshold": lambda v: 0.0 < v < 1.0,
+            "detect_scale": lambda v: 0.0 < v <= 1.0,
         }
         for key, ok in checks.items():
             v = getattr(self, key)

@@ -8,6 +8,7 @@ most ``max_features`` keypoints. Keypoints leave this module undistorted (``uv``
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import cv2
@@ -44,6 +45,9 @@ class Features:
         Sign of the Laplacian at the keypoint scale (see :mod:`eifslam.frontend.split`).
     colors : (N, 3) uint8
         RGB colour at the raw keypoint.
+    detect_ms : float
+        Wall time of the detection and description, milliseconds (reported as the
+        ``detect`` stage wherever the detection ran, e.g. in the runner's worker thread).
     """
 
     uv: Array
@@ -53,6 +57,7 @@ class Features:
     response: Array
     sign: NDArray[np.int8]
     colors: NDArray[np.uint8]
+    detect_ms: float = 0.0
 
     def __len__(self) -> int:
         return int(len(self.uv))
@@ -105,7 +110,8 @@ def make_detector(config: FrontEndConfig) -> "cv2.Feature2D":
     n = config.max_features
     name = config.detector
     if name == "sift":
-        return cv2.SIFT_create(nfeatures=n, nOctaveLayers=config.sift_octave_layers)
+        return cv2.SIFT_create(nfeatures=n, nOctaveLayers=config.sift_octave_layers,
+                               contrastThreshold=float(config.sift_contrast_threshold))
     if name == "orb":
         return cv2.ORB_create(nfeatures=n, fastThreshold=10)
     if name == "akaze":
@@ -169,19 +175,38 @@ def detect_features(
     -------
     Features
         At most ``config.max_features`` keypoints (possibly zero, e.g. for a black image).
+
+    Notes
+    -----
+    Pure apart from the detector object: the same image, camera and config give the same
+    features. One OpenCV detector object should not be used by two threads at once
+    (:meth:`eifslam.frontend.FrontEnd.detect` keeps one per thread).
     """
+    t0 = time.perf_counter()
     img = check_image(image, camera)
     gray, rgb = _gray_and_rgb(img, config.color_order)
-    kps, desc = detector.detectAndCompute(gray, None)
+    s = float(config.detect_scale)
+    if s < 1.0:
+        small = cv2.resize(gray, (max(1, round(gray.shape[1] * s)), max(1, round(gray.shape[0] * s))),
+                           interpolation=cv2.INTER_AREA)
+        sx, sy = small.shape[1] / gray.shape[1], small.shape[0] / gray.shape[0]
+        kps, desc = detector.detectAndCompute(small, None)
+    else:
+        sx = sy = 1.0
+        kps, desc = detector.detectAndCompute(gray, None)
     if desc is None or len(kps) == 0:
         d = 32 if config.detector in ("orb",) else 128
         dtype = np.uint8 if config.detector in ("orb", "akaze") else np.float32
         return Features(
             np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, d), dtype), np.zeros(0),
             np.zeros(0), np.zeros(0, np.int8), np.zeros((0, 3), np.uint8),
+            (time.perf_counter() - t0) * 1e3,
         )
     uv_raw = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
     size = np.array([k.size for k in kps], np.float64)
+    if s < 1.0:  # back to full-resolution pixels (pixel centres: x = (x' + 0.5) / s - 0.5)
+        uv_raw = (uv_raw + 0.5) / np.array([sx, sy]) - 0.5
+        size = size / np.sqrt(sx * sy)
     response = np.array([k.response for k in kps], np.float64)
     if len(kps) > config.max_features:  # AKAZE/SURF have no cap of their own
         keep = np.argsort(-response, kind="stable")[: config.max_features]
@@ -201,4 +226,5 @@ def detect_features(
         response=response,
         sign=sign,
         colors=np.ascontiguousarray(colors, dtype=np.uint8),
+        detect_ms=(time.perf_counter() - t0) * 1e3,
     )

@@ -1,27 +1,29 @@
 """The front end: everything between an image and the measurements the filter fuses.
 
-One entry point per image (:meth:`FrontEnd.add_frame`), then queries by frame id:
+One entry point per image (:meth:`FrontEnd.add_frame`, which is :meth:`FrontEnd.detect`,
+thread-safe and free of the front end's state, then :meth:`FrontEnd.add_features`), then
+queries by frame id:
 keypoints with track ids, tracks common to two frames, the ``Ωm`` observations of a frame
 (``Zm``) and the relative pose of two frames from their ``Ωp`` tracks (``ZR``, ``ZT``).
 """
 
 from __future__ import annotations
 
+import threading
 import time
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from ..geometry.camera import PinholeCamera
-from ..errors import EstimatorError, SessionError
-from ..estimation.statedict import check_index, sub, take, take_ids
+from ..errors import EstimatorError
 from .config import FrontEndConfig
 from .features import Features, detect_features, make_detector
 from .matching import DescriptorMatcher, essential_ransac
 from .relative_pose import estimate_relative_pose
 from .results import FrameFeatures, FrameResult, Reason, RelativePoseResult
+from .session_state import FrontEndState, StoredFrame
 from .split import assign_to_map
 from .tracks import TrackStore
 
@@ -31,13 +33,7 @@ IntArray = NDArray[np.int64]
 __all__ = ["FrontEnd"]
 
 
-@dataclass
-class _Frame:
-    feats: Features
-    raw_ids: IntArray  # as assigned; resolve through the TrackStore before use
-
-
-class FrontEnd:
+class FrontEnd(FrontEndState):
     """Feature detection, track management and relative poses for one calibrated camera.
 
     Parameters
@@ -64,10 +60,11 @@ class FrontEnd:
         self.config = config
         if config.seed is not None:
             cv2.setRNGSeed(int(config.seed))
-        self._detector = make_detector(config)
-        self._matcher = DescriptorMatcher(config.ratio, config.mutual)
+        self._local = threading.local()  # one OpenCV detector per thread (see detect)
+        self._local.detector = make_detector(config)  # made now: a bad detector fails here
+        self._matcher = self._make_matcher()
         self._tracks = TrackStore()
-        self._frames: dict[int, _Frame] = {}
+        self._frames: dict[int, StoredFrame] = {}
         self._desc: dict[int, NDArray] = {}
         self._order: list[int] = []
         self._last_frame = np.zeros(0, np.int64)  # per raw track id: last frame seen in
@@ -75,104 +72,22 @@ class FrontEnd:
 
     # ------------------------------------------------------------------ pickling
     def __getstate__(self) -> dict:
-        """Pickle without the OpenCV detector and matcher (they do not pickle); they are
+        """Pickle without the OpenCV detectors and matcher (they do not pickle); they are
         recreated from the config when loaded (:meth:`__setstate__`)."""
         state = self.__dict__.copy()
-        state["_detector"] = None
+        state["_local"] = None
         state["_matcher"] = None
         return state
 
     def __setstate__(self, state: dict) -> None:
+        state.pop("_detector", None)  # sessions saved before detectors were per thread
         self.__dict__.update(state)
-        self._detector = make_detector(self.config)
-        self._matcher = DescriptorMatcher(self.config.ratio, self.config.mutual)
+        self._local = threading.local()
+        self._matcher = self._make_matcher()
 
-    # ------------------------------------------------------------------ sessions
-    def state_dict(self) -> dict:
-        """What a session keeps, as arrays (:mod:`eifslam.estimation.statedict`): every
-        stored frame's keypoints, descriptors and raw track ids (concatenated in frame
-        order, ``n_keypoints`` per frame), which frames can still be matched, the track
-        store and where each track was last seen. The detector and matcher are not kept
-        (they are made from the config)."""
-        frames = [self._frames[f] for f in self._order]
-
-        def cat(get, tail: tuple, dtype) -> NDArray:
-            parts = [np.asarray(get(f)).reshape((-1,) + tail) for f in frames]
-            return np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros((0,) + tail, dtype)
-
-        desc = [f.feats.descriptors for f in frames if f.feats.descriptors.size]
-        width, dtype = (desc[0].shape[1], desc[0].dtype) if desc else (0, np.uint8)
-        D = cat(lambda f: f.feats.descriptors, (width,), dtype)
-        # OpenCV's SIFT descriptors are floats holding integers 0..255: kept as bytes (4x
-        # smaller), exactly
-        as_bytes = D.dtype == np.float32 and bool(np.all((D >= 0) & (D <= 255) & (D == np.round(D))))
-        return {
-            "descriptors_float32": as_bytes,
-            "order": np.array(self._order, np.int64),
-            "n_keypoints": np.array([len(f.feats) for f in frames], np.int64),
-            "matchable": np.array([f in self._desc for f in self._order], bool),
-            "uv": cat(lambda f: f.feats.uv, (2,), float),
-            "uv_raw": cat(lambda f: f.feats.uv_raw, (2,), float),
-            "descriptors": D.astype(np.uint8) if as_bytes else D,
-            "scale_px": cat(lambda f: f.feats.scale_px, (), float),
-            "response": cat(lambda f: f.feats.response, (), float),
-            "sign": cat(lambda f: f.feats.sign, (), np.int8),
-            "colors": cat(lambda f: f.feats.colors, (3,), np.uint8),
-            "raw_ids": cat(lambda f: f.raw_ids, (), np.int64),
-            "tracks": self._tracks.state_dict(),
-            "last_frame": self._last_frame.copy(),
-            "last_kp": self._last_kp.copy(),
-        }
-
-    def load_state_dict(self, d) -> None:
-        """Restore :meth:`state_dict` into this (new, empty) front end, checked.
-
-        Raises
-        ------
-        SessionError
-            On a missing, malformed or inconsistent entry.
-        """
-        if self._order:
-            raise SessionError("a session loads into a new front end only")
-        order = take_ids(d, "order")
-        F = len(order)
-        if len(np.unique(order)) != F:
-            raise SessionError("array 'order' repeats a frame")
-        nk = take_ids(d, "n_keypoints", F)
-        matchable = take(d, "matchable", bool, (F,))
-        N = int(nk.sum())
-        uv, uv_raw = take(d, "uv", np.float64, (N, 2)), take(d, "uv_raw", np.float64, (N, 2))
-        desc = take(d, "descriptors", (np.uint8, np.float32), (N, None))
-        if d.get("descriptors_float32") is True and desc.dtype == np.uint8:
-            desc = desc.astype(np.float32)
-        scale, resp = take(d, "scale_px", np.float64, (N,)), take(d, "response", np.float64, (N,))
-        sign, colors = take(d, "sign", np.int8, (N,)), take(d, "colors", np.uint8, (N, 3))
-        want = (np.float32 if self.config.detector.float_descriptors else np.uint8, self._detector.descriptorSize())
-        if N and (desc.dtype, desc.shape[1]) != want:
-            raise SessionError(f"descriptors are {desc.dtype} x {desc.shape[1]}, the detector's are "
-                               f"{np.dtype(want[0])} x {want[1]}")
-        raw = take_ids(d, "raw_ids", N)
-        tracks = TrackStore()
-        tracks.load_state_dict(sub(d, "tracks"))
-        check_index(raw, len(tracks), "array 'raw_ids'")
-        last_f, last_k = take_ids(d, "last_frame", None, -1), take_ids(d, "last_kp", None, -1)
-        if len(last_f) != len(last_k) or len(last_f) > len(tracks):
-            raise SessionError("arrays 'last_frame' and 'last_kp' do not match the tracks")
-        n_of = dict(zip(order.tolist(), nk.tolist()))
-        seen = last_f >= 0
-        if not np.all(np.isin(last_f[seen], order)) or np.any(
-                last_k[seen] >= np.array([n_of.get(f, 0) for f in last_f[seen].tolist()], np.int64)) \
-                or np.any(last_k[seen] < 0):
-            raise SessionError("arrays 'last_frame' and 'last_kp' name a keypoint that is not stored")
-        ends = np.cumsum(nk)
-        for fid, a, b, m in zip(order.tolist(), (ends - nk).tolist(), ends.tolist(), matchable.tolist()):
-            feats = Features(uv[a:b].copy(), uv_raw[a:b].copy(), desc[a:b].copy(), scale[a:b].copy(),
-                             resp[a:b].copy(), sign[a:b].copy(), colors[a:b].copy())
-            self._frames[fid] = _Frame(feats, raw[a:b].copy())
-            if m:
-                self._desc[fid] = feats.descriptors
-        self._order = order.tolist()
-        self._tracks, self._last_frame, self._last_kp = tracks, last_f.copy(), last_k.copy()
+    def _make_matcher(self) -> DescriptorMatcher:
+        c = self.config
+        return DescriptorMatcher(c.ratio, c.mutual, c.flann_trees, c.flann_checks)
 
     # ------------------------------------------------------------------ queries
     @property
@@ -180,7 +95,7 @@ class FrontEnd:
         """Ids of the stored frames, in the order they were added."""
         return list(self._order)
 
-    def _get(self, frame_id: int) -> _Frame:
+    def _get(self, frame_id: int) -> StoredFrame:
         fr = self._frames.get(int(frame_id))
         if fr is None:
             raise EstimatorError(f"frame {frame_id} is not stored in the front end")
@@ -254,14 +169,51 @@ class FrontEnd:
         return estimate_relative_pose(ui, uj, self.camera, self.config, int(i), int(j), ids)
 
     # ----------------------------------------------------------------- updates
-    def add_frame(self, image: np.ndarray, frame_id: int) -> FrameResult:
-        """Detect features, match them against the previous frame(s), extend/create tracks.
+    def detect(self, image: np.ndarray) -> Features:
+        """Detect and describe the keypoints of an image, without changing the front end.
+
+        Thread-safe: each calling thread uses its own OpenCV detector (made on its first
+        call), and nothing of the front end's state is read but its camera and config, so
+        a worker thread may detect the next frames while another thread adds features
+        (:meth:`add_features`). The same image always gives the same features.
 
         Parameters
         ----------
         image : ndarray
             ``(H, W)`` or ``(H, W, 3|4)`` image of the camera's size (``uint8``, ``uint16``
             or float in [0, 1]).
+
+        Returns
+        -------
+        Features
+            Undistorted and raw pixels ``(N, 2)``, descriptors ``(N, D)``, and the time
+            the detection took (``detect_ms``).
+
+        Raises
+        ------
+        ImageError
+            On unreadable input (None, wrong dtype, shape or size).
+        """
+        return detect_features(image, self.camera, self.config, self._thread_detector())
+
+    def _thread_detector(self):
+        """This thread's OpenCV detector (made on first use: detectors are not thread-safe)."""
+        detector = getattr(self._local, "detector", None)
+        if detector is None:
+            detector = self._local.detector = make_detector(self.config)
+        return detector
+
+    def add_frame(self, image: np.ndarray | Features, frame_id: int) -> FrameResult:
+        """Detect features, match them against the previous frame(s), extend/create tracks.
+
+        :meth:`detect` followed by :meth:`add_features`.
+
+        Parameters
+        ----------
+        image : ndarray or Features
+            ``(H, W)`` or ``(H, W, 3|4)`` image of the camera's size (``uint8``, ``uint16``
+            or float in [0, 1]); or the :class:`Features` :meth:`detect` gave for it
+            (detected ahead, e.g. in a worker thread), which are then added as they are.
         frame_id : int
             New, unique frame id.
 
@@ -279,10 +231,42 @@ class FrontEnd:
         fid = int(frame_id)
         if fid in self._frames:
             raise EstimatorError(f"frame {fid} was already added to the front end")
+        feats = image if isinstance(image, Features) else self.detect(image)
+        return self.add_features(feats, fid)
+
+    def add_features(self, features: Features, frame_id: int) -> FrameResult:
+        """Match detected features against the previous frame(s), extend/create tracks.
+
+        The part of :meth:`add_frame` after the detection: descriptor matching against
+        the last ``match_window`` frames with the epipolar RANSAC, track extension, new
+        tracks split into ``Ωp``/``Ωm``. Must be called in frame order (from one thread).
+
+        Parameters
+        ----------
+        features : Features
+            From :meth:`detect` (for an image of this front end's camera and config).
+        frame_id : int
+            New, unique frame id.
+
+        Returns
+        -------
+        FrameResult
+            ``timings_ms`` has ``detect`` (``features.detect_ms``) and ``match``.
+
+        Raises
+        ------
+        EstimatorError
+            When ``frame_id`` is already stored, or ``features`` is not a
+            :class:`Features`.
+        """
+        fid = int(frame_id)
+        if fid in self._frames:
+            raise EstimatorError(f"frame {fid} was already added to the front end")
+        if not isinstance(features, Features):
+            raise EstimatorError(f"add_features takes Features, got {type(features).__name__}")
+        feats = features
         if self.config.seed is not None:  # per frame: a resumed session draws what an uninterrupted run would
-            cv2.setRNGSeed(int(self.config.seed) + fid)
-        t0 = time.perf_counter()
-        feats = detect_features(image, self.camera, self.config, self._detector)
+            cv2.setRNGSeed(int(self.config.seed) + fid)  # (OpenCV's generator is per thread: this one's)
         t1 = time.perf_counter()
         ids = np.full(len(feats), -1, np.int64)
         previous = [p for p in reversed(self._order) if p in self._desc][: self.config.match_window]
@@ -294,7 +278,7 @@ class FrontEnd:
         ids[new] = self._tracks.allocate(in_map)
         self._tracks.observe(ids)
         self._note_last_seen(fid, ids)
-        self._frames[fid] = _Frame(feats, ids)
+        self._frames[fid] = StoredFrame(feats, ids)
         self._desc[fid] = feats.descriptors
         self._order.append(fid)
         t2 = time.perf_counter()
@@ -305,7 +289,7 @@ class FrontEnd:
         else:
             ok, reason = True, Reason.OK
         return FrameResult(fid, ok, reason, len(feats), int(n_matches), int(new.sum()),
-                           {"detect": (t1 - t0) * 1e3, "match": (t2 - t1) * 1e3})
+                           {"detect": float(feats.detect_ms), "match": (t2 - t1) * 1e3})
 
     def _epipolar_matches(
         self, uv_a: Array, d_a: NDArray, uv_b: Array, d_b: NDArray

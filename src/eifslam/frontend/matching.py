@@ -30,12 +30,16 @@ class DescriptorMatcher:
         Keep a match when ``d1 < ratio * d2`` (best and second-best distances).
     mutual : bool
         Also require the query to be the train point's nearest neighbour.
+    trees : int
+        Randomised k-d trees of the FLANN index (float descriptors).
+    checks : int
+        Leaves visited per FLANN query.
     """
 
-    def __init__(self, ratio: float = 0.8, mutual: bool = True) -> None:
+    def __init__(self, ratio: float = 0.8, mutual: bool = True, trees: int = 4, checks: int = 48) -> None:
         self.ratio = float(ratio)
         self.mutual = bool(mutual)
-        self._flann = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 48})
+        self._flann = cv2.FlannBasedMatcher({"algorithm": 1, "trees": int(trees)}, {"checks": int(checks)})
         self._hamming = cv2.BFMatcher(cv2.NORM_HAMMING)
 
     def knn(self, q: NDArray, t: NDArray, k: int) -> list:

@@ -4,16 +4,25 @@ Ctrl-C, a stop request (:func:`request_stop`: the CLI's SIGTERM and SIGHUP) or a
 frame stops the loop; :meth:`Slam.finish` then ends the run as the
 configured mode says, and what was estimated so far is returned. Writing the outputs is
 the caller's job (:func:`eifslam.evaluation.outputs.run_to_folder`).
+
+The front end is pipelined (``config.frontend.prefetch`` frames ahead, 2 by default): a
+worker thread decodes the next images (``seq.load``) and detects their features
+(``FrontEnd.detect``; OpenCV releases the GIL) while this thread matches, relates and
+fuses the current one. Detection depends on nothing but the image, and everything else
+runs in frame order in the calling thread, so the results are those of the sequential
+loop (``prefetch=0``).
 """
 
 from __future__ import annotations
 
 import contextlib
+import queue
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
 from tqdm import tqdm
 
@@ -22,7 +31,8 @@ from .config import SlamConfig
 from .finishing import FinishReport
 from .slam import Slam, TrackResult
 
-__all__ = ["RunResult", "request_stop", "resume_index", "run_sequence", "stop_requests"]
+__all__ = ["FramePrefetcher", "RunResult", "request_stop", "resume_index", "run_sequence", "sequential_frames",
+           "stop_requests"]
 
 
 class _StopRequest:
@@ -101,9 +111,128 @@ def resume_index(seq, slam: Slam) -> int:
     return next((k for k, f in enumerate(seq.frames) if f.timestamp > last), len(seq))
 
 
+def sequential_frames(seq, n: int, start: int = 0) -> Iterator[tuple[int, Any, float]]:
+    """Frames ``start .. n-1`` of ``seq`` decoded in the calling thread.
+
+    Yields
+    ------
+    (k, item, ms)
+        ``item`` is the image (or the :class:`~eifslam.errors.ImageError` its decoding
+        raised: the frame is skipped); ``ms`` the decoding time, milliseconds.
+    """
+    for k in range(start, n):
+        t0 = time.perf_counter()
+        try:
+            item: Any = seq.load(k)
+        except ImageError as exc:
+            item = exc
+        yield k, item, (time.perf_counter() - t0) * 1e3
+
+
+class FramePrefetcher:
+    """Decode and detect frames ahead in a worker thread (a bounded queue of ``depth``).
+
+    The worker runs ``seq.load(k)`` and then ``detect(image)`` for ``k = start .. n-1`` in
+    order and hands each result to the consumer through a queue holding at most
+    ``depth`` frames. It is a daemon thread and stops at the next frame (or within 0.1 s
+    when blocked on a full queue) once :meth:`close` is called, so an interrupted run
+    never hangs on it.
+
+    Parameters
+    ----------
+    seq : sequence
+        Anything with ``load(k)``; only the worker thread calls it.
+    n : int
+        One past the last frame.
+    detect : callable
+        Image to features, safe to call from the worker thread
+        (:meth:`eifslam.frontend.FrontEnd.detect`).
+    depth : int >= 1
+        Frames decoded and detected ahead of the consumer.
+    start : int
+        The first frame.
+
+    Notes
+    -----
+    Iterating yields ``(k, item, wait_ms)`` in frame order: ``item`` is the features of
+    frame ``k``; or its image when the detection raised an
+    :class:`~eifslam.errors.EifslamError` (the consumer's own detection then raises the
+    same error where the sequential loop would); or the :class:`ImageError` of its
+    decoding (skip the frame). ``wait_ms`` is how long the consumer waited for it. Any
+    other exception of the worker is re-raised in the consumer.
+    """
+
+    _DONE = object()
+
+    def __init__(self, seq, n: int, detect: Callable[[Any], Any], depth: int = 2, start: int = 0) -> None:
+        self._seq, self._n, self._detect, self._start = seq, int(n), detect, int(start)
+        self._queue: queue.Queue = queue.Queue(maxsize=max(1, int(depth)))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._work, name="eifslam-prefetch", daemon=True)
+        self._thread.start()
+
+    def _put(self, item: tuple) -> bool:
+        while not self._stop.is_set():
+            try:
+                self._queue.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def _work(self) -> None:
+        try:
+            for k in range(self._start, self._n):
+                if self._stop.is_set():
+                    return
+                try:
+                    image = self._seq.load(k)
+                except ImageError as exc:
+                    if not self._put((k, exc, None)):
+                        return
+                    continue
+                try:
+                    item: Any = self._detect(image)
+                except EifslamError:
+                    item = image  # the consumer's track() raises it again, in order
+                if not self._put((k, item, None)):
+                    return
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer thread
+            self._put((-1, None, exc))
+            return
+        self._put((-1, self._DONE, None))
+
+    def __iter__(self) -> Iterator[tuple[int, Any, float]]:
+        while True:
+            t0 = time.perf_counter()
+            while True:
+                try:
+                    k, item, error = self._queue.get(timeout=0.1)
+                    break
+                except queue.Empty:
+                    if not self._thread.is_alive() and self._queue.empty():
+                        raise RuntimeError("the prefetch worker thread ended without a result") from None
+            if error is not None:
+                raise error
+            if item is self._DONE:
+                return
+            yield k, item, (time.perf_counter() - t0) * 1e3
+
+    def close(self, timeout: float = 2.0) -> None:
+        """Stop the worker (it ends after the frame it is on) and wait for it up to ``timeout`` s."""
+        self._stop.set()
+        self._thread.join(timeout)
+
+    @property
+    def alive(self) -> bool:
+        """Whether the worker thread is still running."""
+        return self._thread.is_alive()
+
+
 def run_sequence(seq, config: SlamConfig, max_frames: int | None = None, scale: tuple | None = None,
                  quiet: bool = False, on_frame: Callable[[TrackResult], None] | None = None, *,
-                 slam: Slam | None = None, save_session: str | Path | None = None) -> RunResult:
+                 slam: Slam | None = None, save_session: str | Path | None = None,
+                 prefetch: int | None = None) -> RunResult:
     """Run SLAM over ``seq`` (an :mod:`eifslam.io` sequence, or anything with ``camera``,
     ``frames[k].timestamp``, ``load(k)`` and ``len``), then :meth:`Slam.finish`.
 
@@ -128,10 +257,16 @@ def run_sequence(seq, config: SlamConfig, max_frames: int | None = None, scale: 
         Save the session there after the last frame, before :meth:`Slam.finish` (so that
         a resumed run finishes as the uninterrupted one would). A failure to save is
         reported in ``stopped``; the run's outputs are not lost.
+    prefetch : int, optional
+        Frames decoded and detected ahead in a worker thread (:class:`FramePrefetcher`);
+        0 runs everything in this thread. Default: ``config.frontend.prefetch`` (of the
+        session's config when ``slam`` is given). The results are the same either way.
 
     Returns
     -------
     RunResult
+        Each frame's ``TrackResult.timings_ms`` also has ``load`` (decoding, in this
+        thread) or ``wait`` (time this thread waited for the worker), milliseconds.
 
     Raises
     ------
@@ -139,12 +274,12 @@ def run_sequence(seq, config: SlamConfig, max_frames: int | None = None, scale: 
         When ``slam`` was made with another camera than the sequence's.
     """
     with stop_requests():
-        return _run(seq, config, max_frames, scale, quiet, on_frame, slam, save_session)
+        return _run(seq, config, max_frames, scale, quiet, on_frame, slam, save_session, prefetch)
 
 
 def _run(seq, config: SlamConfig, max_frames: int | None, scale: tuple | None, quiet: bool,
          on_frame: Callable[[TrackResult], None] | None, slam: Slam | None,
-         save_session: str | Path | None) -> RunResult:
+         save_session: str | Path | None, prefetch: int | None) -> RunResult:
     if slam is None:
         slam, start = Slam(seq.camera, config), 0
     else:
@@ -153,19 +288,23 @@ def _run(seq, config: SlamConfig, max_frames: int | None, scale: tuple | None, q
                                f"source's ({seq.camera})")
         start = resume_index(seq, slam)
     n = len(seq) if max_frames is None else min(len(seq), start + max_frames)
+    depth = int(slam.config.frontend.prefetch if prefetch is None else prefetch)
+    detect = getattr(slam.frontend, "detect", None)
     t0 = time.perf_counter()
     stopped = None
-    bar = tqdm(range(start, n), desc="eifslam", unit="frame", disable=quiet, file=sys.stderr)
+    bar = tqdm(total=max(n - start, 0), desc="eifslam", unit="frame", disable=quiet, file=sys.stderr)
+    pre = FramePrefetcher(seq, n, detect, depth, start) if depth > 0 and detect is not None and n > start else None
+    wait_key = "load" if pre is None else "wait"
     try:
-        for k in bar:
+        for k, item, ms in (sequential_frames(seq, n, start) if pre is None else pre):
             if _STOP.reason is not None:
                 raise KeyboardInterrupt(_STOP.reason)
-            try:
-                image = seq.load(k)
-            except ImageError as exc:  # a missing/corrupt image: report it, keep going
-                tqdm.write(f"eifslam: skipping frame {k}: {exc}", file=sys.stderr)
+            bar.update(1)
+            if isinstance(item, ImageError):  # a missing/corrupt image: report it, keep going
+                tqdm.write(f"eifslam: skipping frame {k}: {item}", file=sys.stderr)
                 continue
-            res = slam.track(image, seq.frames[k].timestamp)
+            res = slam.track(item, seq.frames[k].timestamp)
+            res.timings_ms[wait_key] = ms
             bar.set_postfix(state=res.state.value, map=res.map_features)
             if on_frame is not None:
                 on_frame(res)
@@ -174,6 +313,8 @@ def _run(seq, config: SlamConfig, max_frames: int | None, scale: tuple | None, q
     except EifslamError as exc:
         stopped = f"stopped at a failing frame: {exc}"
     finally:
+        if pre is not None:
+            pre.close()
         bar.close()
     if stopped:
         print(f"eifslam: {stopped}; writing what was estimated so far", file=sys.stderr)

@@ -1,0 +1,95 @@
+"""Fast tests of ``benchmarks/realtime.py``: its statistics on known numbers, and one smoke
+run on a tiny rendered scene (5 frames of 320x240, SIFT, filter mode)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def _load(name: str):
+    """Import a benchmark script as a module (benchmarks/ is not a package)."""
+    if str(BENCH) not in sys.path:
+        sys.path.insert(0, str(BENCH))
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", BENCH / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+realtime = _load("realtime")
+
+
+def test_statistics_on_known_numbers():
+    st = realtime.percentile_stats(list(range(1, 101)))  # 1..100
+    assert st["median"] == pytest.approx(50.5) and st["n"] == 100
+    assert st["p95"] == pytest.approx(95.05)  # linear interpolation: 1 + 0.95 * 99
+    assert realtime.percentile_stats([]) == {"median": None, "p95": None, "n": 0}
+    frames = [{"frame": k, "ms": {"total": 10.0 + k, "detect": 5.0}} for k in range(20)]
+    frames[3]["ms"]["recover"] = 7.0
+    s = realtime.stage_stats(frames)
+    assert set(s) == {"total", "detect", "recover"}
+    assert s["recover"] == {"median": 7.0, "p95": 7.0, "n": 1}
+    f = realtime.flatness(frames)  # first 2 frames: 10, 11; last 2: 28, 29
+    assert f["first10_ms"] == pytest.approx(10.5) and f["last10_ms"] == pytest.approx(28.5)
+    assert f["last_over_first"] == pytest.approx(28.5 / 10.5)
+    assert realtime.flatness(frames[:5])["last_over_first"] is None
+    assert realtime.camera_rate_hz([0.0, 0.1, 0.2, 0.3]) == pytest.approx(10.0)
+    assert realtime.camera_rate_hz([1.0]) is None
+
+
+def test_parse_settings():
+    assert realtime.parse_settings(["sift_octave_layers=2", "detect_scale=0.5", "mutual=false", "ransac_method=usac"]) \
+        == {"sift_octave_layers": 2, "detect_scale": 0.5, "mutual": False, "ransac_method": "usac"}
+    with pytest.raises(ValueError):
+        realtime.parse_settings(["nokey"])
+
+
+def _tiny_dataset(root: Path, n: int = 5) -> Path:
+    """Render the first ``n`` frames of a small built-in scene into a data folder."""
+    import cv2
+
+    from eifslam.io import write_camera_yaml, write_tum
+    from eifslam.sim.scene import make_scene, render_frame
+
+    scene = make_scene(n_frames=54, width=320, height=240)
+    (root / "images").mkdir(parents=True)
+    for k in range(n):
+        assert cv2.imwrite(str(root / "images" / f"{k:06d}.png"), render_frame(scene, k))
+    write_camera_yaml(root / "camera.yaml", scene.camera)
+    (root / "times.txt").write_text("".join(f"{t:.6f}\n" for t in scene.timestamps[:n]))
+    write_tum(root / "groundtruth.tum", scene.timestamps[:n], scene.positions[:n], scene.quats_wxyz[:n])
+    return root
+
+
+def test_realtime_smoke(tmp_path, capsys):
+    data = tmp_path / "data"
+    _tiny_dataset(data / "tiny")
+    out = tmp_path / "out"
+    rc = realtime.main(["--data", str(data), "--out", str(out), "--only", "tiny,nope", "--detectors", "sift",
+                        "--smooth", "--set", "max_features=500", "--tag", "t"])
+    summary = json.loads((out / "realtime.json").read_text())
+    assert len(summary["rows"]) == 1
+    row = summary["rows"][0]
+    assert row["error"] is None, row["error"]
+    assert rc == 0
+    assert (row["dataset"], row["detector"], row["frames"], row["settings"]) == ("tiny", "sift", 5, {"max_features": 500})
+    assert row["frames_tracked"] >= 4 and np.isfinite(row["ate_filter"]) and np.isfinite(row["ate_smooth"])
+    assert row["cpu_seconds"] > 0 and row["cpu_ms_per_frame"] > 0
+    assert row["fps"] > 0 and row["camera_hz"] == pytest.approx(2.0)  # the scene: a frame every 0.5 s
+    for s in ("detect", "match", "total", "wait"):
+        assert row["stages"][s]["n"] >= 4 and row["stages"][s]["p95"] >= row["stages"][s]["median"] > 0
+    assert "--only tiny,nope" in summary["command"] and summary["machine"]["opencv"]
+    run = out / "tiny-sift-t"
+    frames = json.loads((run / "frames.json").read_text())["frames"]
+    assert [f["frame"] for f in frames] == list(range(5)) and all(f["ms"]["total"] > 0 for f in frames)
+    assert (run / "frames.png").stat().st_size > 1000 and (run / "report.json").exists()
+    assert "| tiny [t] | sift | 5 |" in capsys.readouterr().out
+    assert realtime.main(["--data", str(data), "--out", str(tmp_path / "o2"), "--only", "nothing"]) == 2

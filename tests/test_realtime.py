@@ -1,0 +1,282 @@
+"""The pipelined front end (issue 12, part 2): ``FrontEnd.detect`` / ``add_features``, the
+runner's prefetching worker thread, and the cheaper-detection settings.
+
+The pipelined run must give the sequential run's results exactly (detection depends on
+the image only; everything else runs in frame order), so the comparisons here are exact.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+from eifslam.errors import ConfigError, EstimatorError, ImageError
+from eifslam.frontend import FrontEnd, FrontEndConfig
+from eifslam.frontend.features import Features
+from eifslam.geometry.camera import PinholeCamera
+from eifslam.system.config import SlamConfig
+from eifslam.system.runner import FramePrefetcher, run_sequence
+
+DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
+
+
+class _Frames:
+    """The minimal sequence ``run_sequence`` needs, over images held in memory."""
+
+    def __init__(self, camera: PinholeCamera, images: list, timestamps) -> None:
+        self.camera = camera
+        self.images = images
+        self.frames = [SimpleNamespace(timestamp=float(t)) for t in timestamps]
+        self.loaded: list[int] = []
+        self.threads: set[str] = set()
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def load(self, k: int):
+        self.loaded.append(k)
+        self.threads.add(threading.current_thread().name)
+        img = self.images[k]
+        if isinstance(img, Exception):
+            raise img
+        return img
+
+
+@pytest.fixture(scope="module")
+def scene_frames() -> _Frames:
+    """Ten frames of the rendered built-in scene at 320x240 (BGR, as imread gives)."""
+    from eifslam.sim.scene import make_scene, render_frame
+
+    scene = make_scene(n_frames=54, width=320, height=240)
+    n = 10
+    return _Frames(scene.camera, [render_frame(scene, k) for k in range(n)], scene.timestamps[:n])
+
+
+def _trajectory(run) -> tuple:
+    return run.slam.trajectory()
+
+
+def _same_runs(a, b) -> None:
+    assert [r.state for r in a.slam.results] == [r.state for r in b.slam.results]
+    assert [r.reason for r in a.slam.results] == [r.reason for r in b.slam.results]
+    ta, Pa, Qa = _trajectory(a)
+    tb, Pb, Qb = _trajectory(b)
+    np.testing.assert_array_equal(ta, tb)
+    np.testing.assert_array_equal(Pa, Pb)  # identical, not merely close
+    np.testing.assert_array_equal(Qa, Qb)
+    ia, Xa, _ = a.slam.map()
+    ib, Xb, _ = b.slam.map()
+    np.testing.assert_array_equal(ia, ib)
+    np.testing.assert_array_equal(Xa, Xb)
+
+
+# -- FrontEnd.detect / add_features ---------------------------------------------------
+def _features_equal(f: Features, g: Features) -> None:
+    for name in ("uv", "uv_raw", "descriptors", "scale_px", "response", "sign", "colors"):
+        np.testing.assert_array_equal(getattr(f, name), getattr(g, name), err_msg=name)
+
+
+def test_detect_is_pure_and_thread_safe(scene_frames):
+    fe = FrontEnd(scene_frames.camera, FrontEndConfig())
+    images = scene_frames.images[:4]
+    ref = [fe.detect(im) for im in images]
+    assert all(len(f) > 100 for f in ref) and all(f.detect_ms > 0 for f in ref)
+    # the same images detected by four threads at once, through the same front end
+    out: dict[tuple[int, int], Features] = {}
+    errors: list[BaseException] = []
+
+    def work(t: int) -> None:
+        try:
+            for r in range(3):
+                for k, im in enumerate(images):
+                    out[(t, r * len(images) + k)] = fe.detect(im)
+        except BaseException as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(t,)) for t in range(4)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert not errors
+    assert len(out) == 4 * 3 * len(images)
+    for (t, i), f in out.items():
+        _features_equal(f, ref[i % len(images)])
+    assert fe.frame_ids == []  # detection stored nothing
+
+
+def test_add_frame_equals_detect_then_add_features(scene_frames):
+    # one front end after the other: each seeds OpenCV's random generator (FLANN's trees)
+    # when made, so two front ends interleaved in one thread would not be comparable
+    cam, ims = scene_frames.camera, scene_frames.images[:5]
+    a = FrontEnd(cam, FrontEndConfig())
+    res_a = [a.add_frame(im, k) for k, im in enumerate(ims)]
+    b = FrontEnd(cam, FrontEndConfig())
+    res_b = [b.add_features(b.detect(im), k) if k % 2 else b.add_frame(b.detect(im), k) for k, im in enumerate(ims)]
+    for ra, rb in zip(res_a, res_b):
+        assert (ra.ok, ra.reason, ra.n_features, ra.n_matches, ra.n_new_tracks) == \
+               (rb.ok, rb.reason, rb.n_features, rb.n_matches, rb.n_new_tracks)
+        assert set(rb.timings_ms) == {"detect", "match"} and rb.timings_ms["detect"] > 0
+    assert res_a[-1].n_matches > 50
+    for k in range(5):
+        fa, fb = a.frame(k), b.frame(k)
+        np.testing.assert_array_equal(fa.track_ids, fb.track_ids)
+        np.testing.assert_array_equal(fa.in_map, fb.in_map)
+    ra, rb = a.relative_pose(0, 4), b.relative_pose(0, 4)
+    assert ra.ok and rb.ok
+    np.testing.assert_array_equal(ra.measurement.q_ij, rb.measurement.q_ij)
+    np.testing.assert_array_equal(ra.measurement.t_ij, rb.measurement.t_ij)
+
+
+def test_add_features_rejects_bad_input(scene_frames):
+    fe = FrontEnd(scene_frames.camera, FrontEndConfig())
+    f = fe.detect(scene_frames.images[0])
+    fe.add_features(f, 0)
+    with pytest.raises(EstimatorError, match="already added"):
+        fe.add_features(f, 0)
+    with pytest.raises(EstimatorError, match="takes Features"):
+        fe.add_features(scene_frames.images[1], 1)
+    with pytest.raises(ImageError):
+        fe.detect(np.zeros((10, 10), np.uint8))
+    assert fe.frame_ids == [0]
+
+
+def test_pickled_front_end_detects_again(scene_frames):
+    import pickle
+
+    fe = FrontEnd(scene_frames.camera, FrontEndConfig())
+    fe.add_frame(scene_frames.images[0], 0)
+    fe2 = pickle.loads(pickle.dumps(fe))
+    _features_equal(fe2.detect(scene_frames.images[1]), fe.detect(scene_frames.images[1]))
+    assert fe2.add_frame(scene_frames.images[1], 1).n_matches == fe.add_frame(scene_frames.images[1], 1).n_matches
+
+
+# -- the runner ---------------------------------------------------------------------------
+def test_pipelined_run_is_the_sequential_run_on_the_rendered_scene(scene_frames):
+    cfg = SlamConfig()
+    seq_run = run_sequence(scene_frames, cfg, quiet=True, prefetch=0)
+    scene_frames.threads.clear()
+    pipe_run = run_sequence(scene_frames, cfg, quiet=True, prefetch=2)
+    assert scene_frames.threads == {"eifslam-prefetch"}  # decoding left the main thread
+    assert seq_run.stopped is None and pipe_run.stopped is None
+    assert sum(r.position is not None for r in pipe_run.slam.results) >= 8
+    _same_runs(seq_run, pipe_run)
+    assert all("wait" in r.timings_ms and "detect" in r.timings_ms for r in pipe_run.slam.results)
+    assert all("load" in r.timings_ms for r in seq_run.slam.results)
+    # the default is pipelined, and the default run is the same run again
+    assert cfg.frontend.prefetch == 2
+    _same_runs(seq_run, run_sequence(scene_frames, cfg, quiet=True))
+
+
+@pytest.mark.skipif(not (DATASETS / "kitti-seq1").is_dir(),
+                    reason="../shared/datasets/kitti-seq1 is absent (the shared data sets are not checked out)")
+def test_pipelined_run_is_the_sequential_run_on_kitti():
+    from eifslam.io import open_source
+
+    seq = open_source(DATASETS / "kitti-seq1")
+    cfg = SlamConfig()
+    a = run_sequence(seq, cfg, max_frames=6, quiet=True, prefetch=0)
+    b = run_sequence(seq, cfg, max_frames=6, quiet=True, prefetch=3)
+    assert sum(r.position is not None for r in b.slam.results) >= 5
+    _same_runs(a, b)
+
+
+def test_bad_frames_are_handled_as_in_the_sequential_loop(scene_frames):
+    ims = list(scene_frames.images[:6])
+    ims[2] = ImageError("frame 2: corrupt file")  # decoding fails: skipped, the run goes on
+    seq = _Frames(scene_frames.camera, ims, range(6))
+    a = run_sequence(seq, SlamConfig(), quiet=True, prefetch=0)
+    b = run_sequence(seq, SlamConfig(), quiet=True, prefetch=2)
+    assert a.stopped is None and b.stopped is None
+    assert a.slam.n_frames == b.slam.n_frames == 5
+    _same_runs(a, b)
+    ims[4] = np.zeros((7, 7), np.uint8)  # decodes, but the front end refuses it: the run stops
+    seq = _Frames(scene_frames.camera, ims, range(6))
+    a = run_sequence(seq, SlamConfig(), quiet=True, prefetch=0)
+    b = run_sequence(seq, SlamConfig(), quiet=True, prefetch=2)
+    assert a.stopped == b.stopped and a.stopped.startswith("stopped at a failing frame")
+    assert a.slam.n_frames == b.slam.n_frames == 3
+
+
+def test_ctrl_c_stops_cleanly_and_keeps_the_estimate(scene_frames, monkeypatch):
+    from eifslam.system import slam as slam_module
+
+    real_track = slam_module.Slam.track
+
+    def track(self, image, timestamp=None):
+        if self.n_frames == 5:
+            raise KeyboardInterrupt
+        return real_track(self, image, timestamp)
+
+    monkeypatch.setattr(slam_module.Slam, "track", track)
+    before = {t for t in threading.enumerate() if t.name == "eifslam-prefetch"}
+    run = run_sequence(scene_frames, SlamConfig(), quiet=True, prefetch=2)
+    assert run.stopped == "interrupted"
+    assert run.slam.n_frames == 5 and sum(r.position is not None for r in run.slam.results) >= 4
+    assert len(run.slam.trajectory()[0]) >= 4
+    left = {t for t in threading.enumerate() if t.name == "eifslam-prefetch"} - before
+    assert not any(t.is_alive() for t in left)  # the worker did not outlive the run
+    assert max(scene_frames.loaded[-3:]) <= 5 + 2 + 1  # it stopped a few frames ahead
+
+
+def test_prefetcher_stops_when_closed_on_a_full_queue():
+    seq = _Frames(PinholeCamera(100.0, 100.0, 50.0, 50.0, 100, 100), [np.zeros((4, 4))] * 1000, range(1000))
+    pre = FramePrefetcher(seq, 1000, detect=lambda im: im.sum(), depth=2)
+    it = iter(pre)
+    assert next(it)[0] == 0
+    pre.close(timeout=5.0)
+    assert not pre.alive
+    assert len(seq.loaded) < 10
+
+
+def test_prefetcher_hands_on_worker_errors():
+    class Boom(Exception):
+        pass
+
+    seq = _Frames(PinholeCamera(100.0, 100.0, 50.0, 50.0, 100, 100), [1, 2, Boom("decoder broke"), 4], range(4))
+    pre = FramePrefetcher(seq, 4, detect=lambda im: -im, depth=1)
+    got = []
+    with pytest.raises(Boom, match="decoder broke"):
+        for k, item, _ in pre:
+            got.append((k, item))
+    assert got == [(0, -1), (1, -2)]
+    pre.close()
+    assert not pre.alive
+
+
+# -- cheaper-detection settings ----------------------------------------------------------
+def test_new_settings_are_validated():
+    for bad in (dict(prefetch=-1), dict(detect_scale=0.0), dict(detect_scale=1.5), dict(flann_checks=0),
+                dict(flann_trees=0), dict(sift_contrast_threshold=0.0), dict(prefetch=1.5)):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            FrontEndConfig(**bad)
+    c = FrontEndConfig(prefetch=0, detect_scale=0.5, flann_checks=16, flann_trees=2, sift_contrast_threshold=0.03)
+    assert c.prefetch == 0 and c.detect_scale == 0.5
+
+
+def test_detect_scale_gives_full_resolution_pixels():
+    """Blobs at known places are found where they are (within a pixel) when detecting on
+    a half-size image, and the keypoint scale is in full-resolution pixels."""
+    h, w = 480, 640
+    img = np.full((h, w), 40, np.uint8)
+    centres = [(100.0, 120.0), (320.0, 240.0), (500.0, 350.0), (200.0, 400.0)]
+    for x, y in centres:
+        cv2.circle(img, (int(x), int(y)), 12, 220, -1, lineType=cv2.LINE_AA)
+    img = cv2.GaussianBlur(img, (0, 0), 2.0)
+    cam = PinholeCamera(500.0, 500.0, (w - 1) / 2, (h - 1) / 2, w, h)
+    full = FrontEnd(cam, FrontEndConfig()).detect(img)
+    half = FrontEnd(cam, FrontEndConfig(detect_scale=0.5)).detect(img)
+    for f in (full, half):
+        for c in centres:
+            d = np.linalg.norm(f.uv_raw - np.array(c), axis=1)
+            i = int(np.argmin(d))
+            assert d[i] < 1.0, (c, d[i])
+    # the blob's keypoint has about the same scale at both resolutions
+    i_full = int(np.argmin(np.linalg.norm(full.uv_raw - np.array(centres[1]), axis=1)))
+    i_half = int(np.argmin(np.linalg.norm(half.uv_raw - np.array(centres[1]), axis=1)))
+    assert 0.7 < half.scale_px[i_half] / full.scale_px[i_full] < 1.4
