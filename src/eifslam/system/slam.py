@@ -297,7 +297,8 @@ class Slam:
             res = self._map_result(mp, res.timestamp, f"{self._keyframe_why}; {res.reason}; kept its map pose",
                                    res.timings_ms)
         self.results.append(res)
-        if res.keyframe and res.position is not None and self.filter.layout.has_pose(res.frame_id):
+        if self.keyframes.enabled and res.keyframe and res.position is not None \
+                and self.filter.layout.has_pose(res.frame_id):
             self.keyframes.note_keyframe(res.frame_id, res.timestamp)
         if res.position is None and res.state is TrackingState.INITIALISING and res.frame_id > 0:
             self._waiting.append(res.frame_id)
