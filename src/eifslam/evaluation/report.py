@@ -9,7 +9,7 @@ unreadable input leaves its figure out with a note in the page; it never stops t
 
 from __future__ import annotations
 
-import html
+import functools
 import json
 import math
 import zipfile
@@ -17,8 +17,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+import jinja2
 import numpy as np
 import scipy.sparse as sp
+from markupsafe import Markup
 from numpy.typing import NDArray
 
 from ..errors import DatasetError, EifslamError, OutputError
@@ -323,57 +325,50 @@ def _ground_truth_section(out_dir: Path, traj: Trajectory | None, gt: Trajectory
     return sec, result.to_dict()
 
 
-_CSS = """
-body { font-family: sans-serif; max-width: 1250px; margin: 2em auto; padding: 0 1em; color: #222; }
-table { border-collapse: collapse; margin: 0.5em 0 1.5em; font-size: 0.9em; }
-th, td { border: 1px solid #ccc; padding: 0.2em 0.6em; text-align: left; }
-td { font-family: monospace; } td.key { color: #888; font-size: 0.85em; }
-.headline { font-size: 1.25em; }
-figure { margin: 0 0 2em; } img { max-width: 100%; border: 1px solid #eee; }
-figcaption, .note { color: #555; font-size: 0.9em; } .note { font-style: italic; }
-"""
+@functools.lru_cache(maxsize=1)
+def _template() -> jinja2.Template:
+    """The page's template, ``templates/report.html.j2`` of this package (package data)."""
+    env = jinja2.Environment(loader=jinja2.PackageLoader("eifslam.evaluation", "templates"),
+                             autoescape=jinja2.select_autoescape(["html", "j2"]),
+                             trim_blocks=True, lstrip_blocks=True, keep_trailing_newline=True,
+                             undefined=jinja2.StrictUndefined)
+    return env.get_template("report.html.j2")
 
 
 def _html(title: str, out_dir: Path, summary: dict[str, Any] | None, summary_notes: list[str],
           evaluation: dict[str, Any] | None, sections: list[_Section]) -> str:
-    parts = [
-        "<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
-        f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>",
-        f"<h1>{html.escape(title)}</h1>",
-        f"<p>Output folder: <code>{html.escape(str(out_dir))}</code></p>",
-    ]
+    """Render the page from ``templates/report.html.j2``.
+
+    Parameters
+    ----------
+    title : page title.
+    out_dir : the run's folder, shown in the page.
+    summary : report.json's content (``None`` when it could not be read).
+    summary_notes : why report.json is missing or unreadable.
+    evaluation : :meth:`.metrics.EvaluationResult.to_dict` against the ground truth, or ``None``.
+    sections : the figures, in page order.
+
+    Returns
+    -------
+    The HTML text; every string is escaped by the template, the tables of
+    :mod:`.report_tables` arrive escaped already.
+    """
     units = str((evaluation or {}).get("units") or (summary or {}).get("ate_units") or GT_UNITS)
-    if evaluation is not None:
-        parts.append(f'<p class="ate headline">ATE RMSE (Sim(3)-aligned): '
-                     f'<span id="ate-rmse">{evaluation["ate_rmse"]:.6g}</span> {html.escape(units)}</p>')
     box = (summary or {}).get("box_ratio_estimated")
-    if isinstance(box, (int, float)) and not isinstance(box, bool):
-        true = (summary or {}).get("box_ratio_true")
-        parts.append(f'<p class="headline">Box width:length <span id="box-ratio">{box:.3f}</span>'
-                     + (f" (true {true:.2f})" if isinstance(true, (int, float)) else "") + "</p>")
-    parts.append("<h2>Summary (report.json)</h2>")
-    parts += [f'<p class="note">{html.escape(n)}</p>' for n in summary_notes]
-    if summary is not None:
-        shown = {k: v for k, v in summary.items() if k != "config"}
-        parts.append(_table(_flatten(shown), "summary", units) if summary
-                     else '<p class="note">report.json is empty.</p>')
-        if isinstance(summary.get("config"), dict):
-            parts += ["<details><summary>Configuration of the run (report.json <code>config</code>)</summary>",
-                      _table(_flatten(summary["config"]), "config"), "</details>"]
-    if evaluation is not None:
-        parts += ["<h2>Evaluation against ground truth</h2>",
-                  _table(_flatten(evaluation), "evaluation", units)]
-    for sec in sections:
-        parts.append(f"<h2>{html.escape(sec.title)}</h2>")
-        parts += [f'<p class="note">{html.escape(n)}</p>' for n in sec.notes]
-        if sec.image is not None:
-            parts.append(f'<figure><img src="{html.escape(sec.image, quote=True)}" '
-                         f'alt="{html.escape(sec.title, quote=True)}">'
-                         f"<figcaption>{html.escape(sec.caption)}</figcaption></figure>")
-        elif not sec.notes:
-            parts.append('<p class="note">Figure left out.</p>')
-    parts.append("</body></html>")
-    return "\n".join(parts) + "\n"
+    true = (summary or {}).get("box_ratio_true")
+    has_box = isinstance(box, (int, float)) and not isinstance(box, bool)
+    config = (summary or {}).get("config")
+    return _template().render(
+        title=title, out_dir=str(out_dir), units=units,
+        ate_rmse=None if evaluation is None else f"{evaluation['ate_rmse']:.6g}",
+        box_ratio=f"{box:.3f}" if has_box else None,
+        box_ratio_true=f"{true:.2f}" if has_box and isinstance(true, (int, float)) else None,
+        summary=summary, summary_notes=summary_notes,
+        summary_table=Markup(_table(_flatten({k: v for k, v in summary.items() if k != "config"}),
+                                    "summary", units)) if summary else None,
+        config_table=Markup(_table(_flatten(config), "config")) if isinstance(config, dict) else None,
+        evaluation_table=None if evaluation is None else Markup(_table(_flatten(evaluation), "evaluation", units)),
+        sections=sections)
 
 
 def write_report(out_dir: str | Path, ground_truth: Trajectory | None = None,
