@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..estimation.localisation import localise_pose, map_pose_covariance
+from ..frontend.twoview import median_parallax_deg as twoview_parallax
 from ..geometry.camera import PinholeCamera
 from .config import SlamConfig
 
@@ -75,12 +76,15 @@ class MapPose:
 
 def median_parallax_deg(X: Array, c_a: Array, c_b: Array) -> float:
     """Median angle, degrees, between the rays from camera centres ``c_a`` and ``c_b``
-    (3,) to the points ``X`` (N, 3); 0 for no points."""
+    (3,) to the points ``X`` (N, 3) (world-frame bearings, so no rotation between them:
+    :func:`eifslam.frontend.twoview.median_parallax_deg`); 0 for no points."""
     if len(X) == 0:
         return 0.0
-    a, b = X - c_a, X - c_b
-    cos = np.einsum("ij,ij->i", a, b) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-300)
-    return float(np.degrees(np.median(np.arccos(np.clip(cos, -1.0, 1.0)))))
+
+    def unit(v: Array) -> Array:
+        return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
+
+    return twoview_parallax(np.eye(3), unit(X - c_a), unit(X - c_b))
 
 
 class Keyframes:
