@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from ..estimation.localisation import localise_pose, map_pose_covariance
 from ..frontend.twoview import median_parallax_deg as twoview_parallax
 from ..geometry.camera import PinholeCamera
+from ..geometry.rotations import quat_conjugate, quat_multiply, quat_normalize, quat_to_rotmat
 from .config import SlamConfig
 
 Array = NDArray[np.float64]
@@ -60,6 +61,10 @@ class MapPose:
         Median parallax, degrees, of the map features it shares with the reference.
     tracked_fraction : float
         Fraction of the reference keyframe's map features this frame sees.
+    p_rel, q_rel : (3,), (4,)
+        The pose in the reference keyframe's camera frame when it was tracked (set by
+        :meth:`Keyframes.add`): after the map moves, the frame starts again from the
+        reference keyframe's new pose composed with it.
     """
 
     frame_id: int
@@ -72,6 +77,8 @@ class MapPose:
     inlier_fraction: float
     parallax_deg: float
     tracked_fraction: float
+    p_rel: Array | None = None
+    q_rel: Array | None = None
 
 
 def median_parallax_deg(X: Array, c_a: Array, c_b: Array) -> float:
@@ -127,6 +134,8 @@ class Keyframes:
             "uv": np.concatenate([m.uv for m in mps]).reshape(-1, 2).astype(float) if mps else np.zeros((0, 2)),
             "figures": np.array([[m.inlier_fraction, m.parallax_deg, m.tracked_fraction] for m in mps],
                                 float).reshape(-1, 3),
+            "p_rel": np.array([m.p_rel for m in mps], float).reshape(-1, 3),
+            "q_rel": np.array([m.q_rel for m in mps], float).reshape(-1, 4),
         }
 
     def load_state_dict(self, d) -> None:
@@ -143,13 +152,14 @@ class Keyframes:
         ref, n_obs = take_ids(d, "reference", m), take_ids(d, "n_obs", m)
         p, q = take(d, "p", np.float64, (m, 3)), take(d, "q", np.float64, (m, 4))
         cov, fig = take(d, "covariance", np.float64, (m, 6, 6)), take(d, "figures", np.float64, (m, 3))
+        p_rel, q_rel = take(d, "p_rel", np.float64, (m, 3)), take(d, "q_rel", np.float64, (m, 4))
         n = int(n_obs.sum())
         tids, uv = take_ids(d, "track_ids", n), take(d, "uv", np.float64, (n, 2))
         ends = np.cumsum(n_obs)
         self.last, self._last_time, self._last_seen = last, take_float(d, "last_time"), take_ids(d, "last_seen").copy()
         self._poses = {int(f): MapPose(int(f), int(r), pp.copy(), qq.copy(), c.copy(), tids[b - k:b].copy(),
-                                       uv[b - k:b].copy(), float(g[0]), float(g[1]), float(g[2]))
-                       for f, r, pp, qq, c, g, k, b in zip(fid, ref, p, q, cov, fig, n_obs, ends)}
+                                       uv[b - k:b].copy(), float(g[0]), float(g[1]), float(g[2]), pr.copy(), qr.copy())
+                       for f, r, pp, qq, c, g, k, b, pr, qr in zip(fid, ref, p, q, cov, fig, n_obs, ends, p_rel, q_rel)}
 
     # -- queries ------------------------------------------------------------------
     @property
@@ -227,8 +237,18 @@ class Keyframes:
         return self.due(timestamp)
 
     def add(self, mp: MapPose) -> None:
-        """Keep ``mp`` as the pose of its frame."""
+        """Keep ``mp`` as the pose of its frame, and its pose relative to its reference
+        keyframe's current estimate (``p_rel``, ``q_rel``)."""
+        p_ref, q_ref = self.filter.pose(mp.reference)
+        mp.p_rel = quat_to_rotmat(q_ref).T @ (mp.p - p_ref)
+        mp.q_rel = quat_multiply(quat_conjugate(q_ref), mp.q)
         self._poses[mp.frame_id] = mp
+
+    def composed(self, mp: MapPose) -> tuple[Array, Array]:
+        """The pose of ``mp``'s frame carried along with its reference keyframe: the
+        keyframe's current pose composed with ``(p_rel, q_rel)``; (3,), (4,)."""
+        p_ref, q_ref = self.filter.pose(mp.reference)
+        return p_ref + quat_to_rotmat(q_ref) @ mp.p_rel, quat_normalize(quat_multiply(q_ref, mp.q_rel))
 
     # -- after the run ------------------------------------------------------------
     def rescale(self, s: float) -> None:
@@ -236,21 +256,27 @@ class Keyframes:
         positions scale by ``s``, their covariance block by ``s**2``, the cross block by ``s``."""
         S = np.diag([s, s, s, 1.0, 1.0, 1.0])
         for mp in self._poses.values():
-            mp.p = mp.p * s
+            mp.p, mp.p_rel = mp.p * s, mp.p_rel * s
             mp.covariance = S @ mp.covariance @ S
     def refine(self) -> list[MapPose]:
-        """Re-localise every frame between keyframes on the current map (from its pose
-        and the map observations it was localised on); a frame whose features left the
-        map, or whose pose no longer converges or fits under ``system.map_inlier_fraction``
-        of them (a wrong minimum: on kitti-07 one such frame landed 10 m off), keeps its
-        pose. Returns the poses."""
+        """Place every frame between keyframes on the current map (after smoothing or
+        bundle adjustment): it starts from its reference keyframe's new pose composed with
+        the relative pose it had when tracked (:meth:`composed`; its old absolute pose is
+        in the old map's gauge, and a re-localisation from it can converge to a wrong
+        minimum: on kitti-07 one such frame landed 10 m off with 70% of its features
+        fitting) and is re-localised on the map observations it was localised on. When
+        its features left the map, or the re-localisation does not converge or fits under
+        ``system.map_inlier_fraction`` of them, it keeps the composed pose. Returns the
+        poses."""
         filt, sysc = self.filter, self.config.system
         for k, mp in self._poses.items():
+            p0, q0 = self.composed(mp)
+            mp.p, mp.q = p0, q0
             known = filt.layout.has_features(mp.track_ids)
             if known.sum() < sysc.min_map_features:
                 continue
             X = filt.x[filt.layout.feature_columns(mp.track_ids[known])]
-            sol = localise_pose(self.camera, mp.p, mp.q, X, mp.uv[known], min_inliers=sysc.min_map_features,
+            sol = localise_pose(self.camera, p0, q0, X, mp.uv[known], min_inliers=sysc.min_map_features,
                                 inlier_px=sysc.inlier_radius_px)
             if sol is None or sol[2].mean() < sysc.map_inlier_fraction:
                 continue
