@@ -118,3 +118,33 @@ def test_keyframe_settings_are_checked():
         with pytest.raises(ConfigError):
             SlamConfig.from_dict({"system": bad})
     assert SlamConfig().system.keyframe_parallax == SlamConfig().system.min_feature_parallax_deg
+
+
+def test_frames_between_keyframes_follow_their_keyframe_when_the_map_moves():
+    """After the whole map moves (a rigid motion of every state, as smoothing or a loop
+    closure can cause), a frame between keyframes is placed from its reference keyframe's
+    new pose, not re-localised from its stale pose in the old gauge."""
+    from eifslam.geometry.rotations import quat_exp, quat_multiply, quat_to_rotmat
+
+    sc, slam = run(keyframes=True, frames=30)
+    filt = slam.filter
+    between = [r.frame_id for r in slam.results if not r.keyframe]
+    before = {j: (slam.results[j].position.copy(), slam.results[j].quat_wxyz.copy()) for j in between}
+    dq = quat_exp(np.radians([0.0, 35.0, 10.0]))
+    R, t = quat_to_rotmat(dq), np.array([12.0, -3.0, 8.0])  # far beyond the map's extent
+    x = filt.x.copy()
+    for f in filt.layout.pose_ids:
+        s = filt.layout.pose_slice(f)
+        x[s][:3] = R @ x[s][:3] + t
+        x[s.start + 3:s.stop] = quat_multiply(dq, x[s.start + 3:s.stop])
+    for tr in filt.layout.feature_ids:
+        s = filt.layout.feature_slice(tr)
+        x[s] = R @ x[s] + t
+    filt.set_estimate(x)
+    slam.refine_between_keyframes()
+    for j in between:
+        p_old, q_old = before[j]
+        p_new = slam.results[j].position
+        # the same pose carried by the rigid motion, up to the re-localisation's noise
+        assert np.linalg.norm(p_new - (R @ p_old + t)) < 0.02
+        assert np.linalg.norm(p_new - p_old) > 5.0
