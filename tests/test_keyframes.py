@@ -117,7 +117,7 @@ def test_keyframe_settings_are_checked():
                 {"keyframe_max_interval_s": 0.0}, {"keyframes": "yes"}):
         with pytest.raises(ConfigError):
             SlamConfig.from_dict({"system": bad})
-    assert SlamConfig().system.keyframe_parallax == SlamConfig().system.min_feature_parallax_deg
+    assert SlamConfig().system.keyframe_parallax == SlamConfig().system.min_feature_parallax_deg / 4
 
 
 def test_frames_between_keyframes_follow_their_keyframe_when_the_map_moves():
