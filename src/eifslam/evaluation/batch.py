@@ -109,7 +109,8 @@ def dataset_names(sources: Sequence[str | Path]) -> list[str]:
 
 def make_tasks(sources: Sequence[str | Path], configs: Sequence[SlamConfig], out: str | Path,
                max_frames: int | None = None, html: bool = True,
-               extra: Callable[[SlamConfig], dict] | None = None) -> list[BatchTask]:
+               extra: Callable[[SlamConfig], dict] | None = None,
+               names: Sequence[str] | None = None) -> list[BatchTask]:
     """One task per (source, configuration), sources first.
 
     Parameters
@@ -125,6 +126,8 @@ def make_tasks(sources: Sequence[str | Path], configs: Sequence[SlamConfig], out
         As :class:`BatchTask`.
     extra : callable, optional
         ``config -> dict`` copied into each task's ``report.json``.
+    names : sequence of str, optional
+        The sources' names (default :func:`dataset_names`); must be unique.
 
     Returns
     -------
@@ -133,8 +136,11 @@ def make_tasks(sources: Sequence[str | Path], configs: Sequence[SlamConfig], out
     Raises
     ------
     EifslamError
-        Two configurations share a mode and a detector.
+        Two configurations share a mode and a detector, or two sources a name.
     """
+    names = list(names) if names is not None else dataset_names(sources)
+    if len(set(names)) != len(names) or len(names) != len(sources):
+        raise EifslamError(f"the batch's sources need one name each, all different (got {names})")
     seen: set[tuple[str, str]] = set()
     for c in configs:
         key = (str(c.system.mode), str(c.frontend.detector))
@@ -143,7 +149,7 @@ def make_tasks(sources: Sequence[str | Path], configs: Sequence[SlamConfig], out
                                "their outputs would share a folder")
         seen.add(key)
     tasks = []
-    for src, name in zip(sources, dataset_names(sources)):
+    for src, name in zip(sources, names):
         for c in configs:
             d = c.to_dict()
             folder = f"{name}-{d['system']['mode']}-{d['frontend']['detector']}"
