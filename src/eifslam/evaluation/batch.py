@@ -34,7 +34,7 @@ __all__ = ["BatchTask", "make_tasks", "dataset_names", "is_complete", "run_task"
 
 #: the keys of every result row, in the order ``results.md`` shows them
 ROW_KEYS = ("dataset", "mode", "features", "status", "frames", "tracked", "map_features", "ate_rmse",
-            "ate_units", "seconds", "error", "out", "source")
+            "ate_units", "seconds", "cpu_seconds", "error", "out", "source")
 
 
 @dataclass(frozen=True)
@@ -181,7 +181,7 @@ def one_line(exc: BaseException) -> str:
 
 
 def _row(task: BatchTask, status: str, rep: Mapping[str, Any] | None, seconds: float | None,
-         error: str | None) -> dict[str, Any]:
+         error: str | None, cpu_seconds: float | None = None) -> dict[str, Any]:
     rep = rep or {}
     frames, tracked = rep.get("frames"), rep.get("frames_tracked")
     if error is None and rep.get("stopped"):
@@ -191,7 +191,7 @@ def _row(task: BatchTask, status: str, rep: Mapping[str, Any] | None, seconds: f
     return dict(dataset=task.dataset, mode=task.mode, features=task.features, status=status, frames=frames,
                 tracked=tracked, map_features=rep.get("map_features"), ate_rmse=rep.get("ate_rmse"),
                 ate_units=rep.get("ate_units"), seconds=None if seconds is None else round(seconds, 3),
-                error=None if error is None else " ".join(str(error).split()), out=task.out_dir,
+                cpu_seconds=None if cpu_seconds is None else round(cpu_seconds, 3), error=None if error is None else " ".join(str(error).split()), out=task.out_dir,
                 source=task.source)
 
 
@@ -224,13 +224,14 @@ def run_task(task: BatchTask, quiet: bool = True) -> dict[str, Any]:
     dict
         The row: ``dataset, mode, features, status`` (``done`` or ``failed``), ``frames,
         tracked`` (frames with a pose), ``map_features, ate_rmse, ate_units`` (``None``
-        without ground truth), ``seconds`` (wall time of the task), ``error`` (one line or
+        without ground truth), ``seconds`` (wall time of the task), ``cpu_seconds`` (CPU
+        time of the process during the task, all its threads), ``error`` (one line or
         ``None``), ``out``, ``source``.
     """
     from ..io import open_source
     from .outputs import run_to_folder
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         (Path(task.out_dir) / "report.json").unlink(missing_ok=True)
         config = SlamConfig.from_dict(task.config)
@@ -238,8 +239,8 @@ def run_task(task: BatchTask, quiet: bool = True) -> dict[str, Any]:
         rep = run_to_folder(seq, config, task.out_dir, max_frames=task.max_frames, html=task.html,
                             extra=dict(task.extra), quiet=quiet, verbose=not quiet)
     except Exception as exc:  # noqa: BLE001 - one failing task must not stop the others
-        return _row(task, "failed", None, time.perf_counter() - t0, one_line(exc))
-    row = _row(task, "done", rep, time.perf_counter() - t0, None)
+        return _row(task, "failed", None, time.perf_counter() - t0, one_line(exc), time.process_time() - c0)
+    row = _row(task, "done", rep, time.perf_counter() - t0, None, time.process_time() - c0)
     if row["error"]:
         row["status"] = "failed"
     return row
