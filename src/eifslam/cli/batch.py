@@ -19,6 +19,7 @@ from .run import add_common_options, announce, base_config, make_config, provena
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
+    """Register ``eifslam batch`` on the sub-command parsers ``sub``; returns its parser."""
     p = sub.add_parser("batch", help="run SLAM on many sequences and settings at once (Dask)",
                        description="Run eifslam on every SOURCE with every --mode and --features, one Dask task "
                                    "each (a local cluster of single-threaded processes, or --scheduler), and write "
@@ -47,6 +48,14 @@ def configs(args: argparse.Namespace) -> list:
 
 
 def main(args: argparse.Namespace) -> int:
+    """Run the batch the parsed options describe; return the exit code (0, 1 or 2, see above).
+
+    Raises
+    ------
+    EifslamError
+        Bad options, a ``--config`` file or an output folder that cannot be used, a
+        scheduler that cannot be reached (one line; checked before any task runs).
+    """
     from ..evaluation.batch import make_tasks, write_results
     from ..io.files import ensure_output_dir
     from .cluster import DaskMissing, import_distributed, run_on_dask

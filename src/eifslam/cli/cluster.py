@@ -132,7 +132,15 @@ def run_on_dask(tasks: Sequence[BatchTask], workers: int | None = None, schedule
     -------
     list of dict
         The rows, in the order of ``tasks``. Interrupted (Ctrl-C), the unfinished tasks
-        are given rows saying so (through ``on_row``) before the interrupt goes on.
+        are given rows saying so (through ``on_row``) before the interrupt goes on; so
+        are they when the cluster fails (a scheduler that cannot be reached).
+
+    Raises
+    ------
+    DaskMissing
+        Dask is not installed.
+    EifslamError
+        The scheduler cannot be reached.
     """
     from tqdm import tqdm
 
@@ -154,12 +162,13 @@ def run_on_dask(tasks: Sequence[BatchTask], workers: int | None = None, schedule
         if todo:
             with dask_client(workers, scheduler) as client:
                 _collect(client, tasks, todo, task_function, record, started, progress, tqdm)
-    except BaseException:
+    except BaseException as exc:
+        why = ("not finished: the batch was interrupted" if isinstance(exc, KeyboardInterrupt)
+               else f"not finished: {one_line(exc)}")
         for k in todo:
             if rows[k] is None:
                 t0 = started.get(k)
-                record(k, failed_row(tasks[k], "not finished: the batch was interrupted",
-                                     None if t0 is None else time.perf_counter() - t0))
+                record(k, failed_row(tasks[k], why, None if t0 is None else time.perf_counter() - t0))
         raise
     return [r for r in rows if r is not None]
 
