@@ -128,6 +128,11 @@ def run_on_dask(tasks: Sequence[BatchTask], workers: int | None = None, schedule
     task_function : callable
         What a worker runs for a task (tests replace it).
 
+    Notes
+    -----
+    The local cluster starts its workers with ``multiprocessing``'s *spawn*: a script that
+    calls this needs the ``if __name__ == "__main__":`` guard, as for ``multiprocessing``.
+
     Returns
     -------
     list of dict
