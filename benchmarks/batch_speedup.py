@@ -13,7 +13,10 @@ middlebury-templering), builds the tasks of ``eifslam batch`` (one per set, ``--
 
 each ``--repeat`` times, alternating. Prints the figures and writes
 ``OUT/batch_speedup.json``: per round and mode the wall seconds, the 1-minute load average
-before and after, and each task's wall and CPU seconds, tracked frames and ATE; the median speed-up (sequential / dask); and the bound the
+before and after, the tasks' CPU seconds and the cores they used on average (CPU / wall:
+on a shared Linux machine with ``sched_autogroup`` the kernel gives each session a share,
+however many processes it runs), and each task's wall and CPU seconds, tracked frames and
+ATE; the median speed-up (sequential / dask); and the bound the
 longest task sets (``max(sum / workers, longest)`` of the sequential task times).
 
     python benchmarks/batch_speedup.py --data ../shared/datasets --out out/batch_speedup
@@ -48,10 +51,20 @@ def _phase(name: str, run) -> dict[str, Any]:
     rows = run()
     wall = time.perf_counter() - t0
     log(f"{name}: {wall:.1f} s wall; " + ", ".join(f"{r['dataset']} {r['seconds']} s" for r in rows))
+    cpu = sum(r["cpu_seconds"] or 0.0 for r in rows)
     return dict(wall_seconds=round(wall, 3), load_average_1min=[round(load0, 2), round(os.getloadavg()[0], 2)],
+                task_cpu_seconds=round(cpu, 3), cores_used=round(cpu / wall, 3),
                 tasks=[{k: r[k] for k in ("dataset", "status", "seconds", "cpu_seconds", "frames",
                                                                          "tracked", "ate_rmse", "error")}
                                                     for r in rows])
+
+
+def _autogroup() -> bool | None:
+    """Whether the kernel shares CPU between sessions (``/proc/sys/kernel/sched_autogroup_enabled``)."""
+    try:
+        return Path("/proc/sys/kernel/sched_autogroup_enabled").read_text().strip() == "1"
+    except OSError:
+        return None
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -95,12 +108,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                speedup_bound_median=round(statistics.median(bounds), 3),
                note="wall times on a machine shared with other jobs; the dask time includes starting and "
                     "stopping the cluster; bound = sum of the sequential task times / max(sum / workers, "
-                    "longest task)")
+                    "longest task)",
+               sched_autogroup=_autogroup())
     args.out.mkdir(parents=True, exist_ok=True)
     write_json(args.out / "batch_speedup.json", res)
     for k, rd in enumerate(rounds):
-        print(f"round {k + 1}: sequential {rd['sequential']['wall_seconds']:.1f} s, dask {args.workers} workers "
-              f"{rd['dask']['wall_seconds']:.1f} s, speed-up {speedups[k]:.2f} (bound {bounds[k]:.2f})")
+        print(f"round {k + 1}: sequential {rd['sequential']['wall_seconds']:.1f} s "
+              f"({rd['sequential']['cores_used']:.2f} cores), dask {args.workers} workers "
+              f"{rd['dask']['wall_seconds']:.1f} s ({rd['dask']['cores_used']:.2f} cores), "
+              f"speed-up {speedups[k]:.2f} (bound {bounds[k]:.2f})")
     print(f"median speed-up {res['speedup_median']:.2f}; wrote {args.out / 'batch_speedup.json'}")
     return res
 
