@@ -173,7 +173,9 @@ def run_on_dask(tasks: Sequence[BatchTask], workers: int | None = None, schedule
         for k in todo:
             if rows[k] is None:
                 t0 = started.get(k)
-                record(k, failed_row(tasks[k], why, None if t0 is None else time.perf_counter() - t0))
+                note = " (its folder's report.json is complete)" if t0 is not None and is_complete(
+                    tasks[k].out_dir) else ""
+                record(k, failed_row(tasks[k], why + note, None if t0 is None else time.perf_counter() - t0))
         raise
     return [r for r in rows if r is not None]
 
