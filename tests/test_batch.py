@@ -1,6 +1,7 @@
 """``eifslam batch`` (issue 17): the task list, the task function, skipping complete
-folders, failures as rows, the missing-Dask hint, and two runs through a real local Dask
-cluster (one of them with a worker killed by SIGKILL).
+folders, failures as rows, the missing-Dask hint, an unreachable scheduler, two runs
+through a real local Dask cluster of processes (one of them with a worker killed by
+SIGKILL) and one on an existing (threaded) cluster through ``--scheduler``.
 
 The runs are on 4 frames of the built-in scene rendered at 320x240 (a fraction of a
 second each); the two cluster tests start worker processes (a few seconds each).
@@ -154,3 +155,38 @@ def test_a_killed_worker_gives_a_row_and_the_others_finish(data, tmp_path):
     assert killed["status"] == "failed" and "KilledWorker" in killed["error"] and "\n" not in killed["error"]
     assert ok["status"] == "done" and ok["error"] is None and ok["tracked"] >= 3
     assert bad["status"] == "failed" and "no image" in bad["error"]
+
+
+def test_batch_on_an_existing_scheduler(data, tmp_path):
+    import cv2
+    from distributed import LocalCluster
+
+    threads = cv2.getNumThreads()  # the task sets OpenCV's threads of this process (workers are threads here)
+    out = tmp_path / "out"
+    try:
+        with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+            rc = main(["batch", str(data / "tinyB"), "--out", str(out), "--mode", "filter", "--no-html", "-q",
+                       "--scheduler", cluster.scheduler_address])
+    finally:
+        cv2.setNumThreads(threads)
+    rows = json.loads((out / "results.json").read_text())
+    assert rc == 0 and [(r["dataset"], r["status"]) for r in rows] == [("tinyB", "done")]
+    assert rows[0]["tracked"] >= 3 and 0 < rows[0]["ate_rmse"] < 0.05
+
+
+def test_an_unreachable_scheduler_is_one_line(data, tmp_path, capsys, monkeypatch):
+    import distributed
+
+    from eifslam.cli import cluster
+
+    def refuse(address, timeout=None):  # what Client says after its timeout, without the wait
+        raise OSError(f"Timed out trying to connect to {address} after 15 s")
+
+    monkeypatch.setattr(distributed, "Client", refuse)
+    rc = main(["batch", str(data / "tinyA"), "--out", str(tmp_path / "out"), "-q", "--scheduler", "tcp://127.0.0.1:9"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1 and err == ["eifslam: error: tcp://127.0.0.1:9: cannot connect to the Dask scheduler "
+                               "(OSError: Timed out trying to connect to tcp://127.0.0.1:9 after 15 s)"]
+    rows = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert rows[0]["status"] == "failed" and "cannot connect" in rows[0]["error"]
+    assert cluster.INSTALL_HINT.startswith("eifslam batch needs Dask")
