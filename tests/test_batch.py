@@ -19,7 +19,7 @@ import pytest
 from eifslam.cli.main import main
 from eifslam.errors import EifslamError
 from eifslam.evaluation.batch import (
-    dataset_names, is_complete, make_tasks, results_markdown, run_serial, run_task, skipped_row, write_results,
+    ROW_KEYS, dataset_names, is_complete, make_tasks, results_markdown, run_serial, run_task, skipped_row, write_results,
 )
 from eifslam.system.config import SlamConfig
 
@@ -69,6 +69,7 @@ def test_tasks_run_fail_as_rows_and_skip_when_complete(data, tmp_path):
     rows = run_serial(tasks, on_row=lambda k, r: seen.append(k))
     assert seen == [0, 1]
     ok, bad = rows
+    assert tuple(ok) == ROW_KEYS and tuple(bad) == ROW_KEYS
     assert (ok["dataset"], ok["mode"], ok["features"], ok["status"], ok["error"]) == ("tinyA", "filter", "sift",
                                                                                       "done", None)
     assert ok["frames"] == 4 and 3 <= ok["tracked"] <= 4 and ok["ate_units"] == "m"

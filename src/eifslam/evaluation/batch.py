@@ -30,7 +30,7 @@ from ..io.files import atomic_write
 from ..system.config import SlamConfig
 
 __all__ = ["BatchTask", "make_tasks", "dataset_names", "is_complete", "run_task", "run_serial", "failed_row",
-           "skipped_row", "write_results", "results_markdown", "ROW_KEYS"]
+           "skipped_row", "write_results", "results_markdown", "one_line", "ROW_KEYS"]
 
 #: the keys of every result row, in the order ``results.md`` shows them
 ROW_KEYS = ("dataset", "mode", "features", "status", "frames", "tracked", "map_features", "ate_rmse",
@@ -191,8 +191,8 @@ def _row(task: BatchTask, status: str, rep: Mapping[str, Any] | None, seconds: f
     return dict(dataset=task.dataset, mode=task.mode, features=task.features, status=status, frames=frames,
                 tracked=tracked, map_features=rep.get("map_features"), ate_rmse=rep.get("ate_rmse"),
                 ate_units=rep.get("ate_units"), seconds=None if seconds is None else round(seconds, 3),
-                cpu_seconds=None if cpu_seconds is None else round(cpu_seconds, 3), error=None if error is None else " ".join(str(error).split()), out=task.out_dir,
-                source=task.source)
+                cpu_seconds=None if cpu_seconds is None else round(cpu_seconds, 3),
+                error=None if error is None else " ".join(str(error).split()), out=task.out_dir, source=task.source)
 
 
 def failed_row(task: BatchTask, error: str, seconds: float | None = None) -> dict[str, Any]:
