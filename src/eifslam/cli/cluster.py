@@ -95,8 +95,9 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
         with client:
             yield client
         return
-    # a worker that dies takes only its task with it: no retry elsewhere, a KilledWorker row
-    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+    # a worker that dies takes only its task with it: no retry elsewhere, a KilledWorker row;
+    # no statistical profiler (a 10 ms tick in each worker; nothing here shows its profiles)
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0, "distributed.worker.profile.enabled": False}):
         cluster = distributed.LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1,
                                            processes=True, dashboard_address=None, silence_logs=logging.ERROR)
     with cluster, distributed.Client(cluster) as client:
