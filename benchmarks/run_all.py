@@ -12,7 +12,10 @@ on the built-in scene of the paper's first experiment (rendered once into
 ``OUT/builtin-scene``; name ``builtin``), for each mode and detector, with the system's
 default configuration otherwise. Each run writes its outputs (no HTML) into
 ``OUT/<dataset>-<mode>-<detector>/``; a failing run is recorded with its error and the
-next one starts. Writes
+next one starts. The runs are the tasks of ``eifslam batch`` (``eifslam.evaluation.batch``):
+one after another in this process, or on Dask with ``--workers N`` (a local cluster of
+single-threaded processes) or ``--scheduler ADDRESS``; ``--skip-complete`` keeps the runs
+whose folders are complete instead of redoing them. Writes
 
 * ``OUT/results.json``: a list of rows (see ``_common.build_row``), rewritten after every run;
 * ``OUT/results.md``: the Markdown table (ATE, tracked %, map features, fps, median
@@ -26,15 +29,16 @@ The table is printed on stdout at the end; progress goes to stderr.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import (  # noqa: E402
-    BUILTIN, build_row, command_line, discover_datasets, fmt, log, machine_info,
-    markdown_table, prepare_builtin, provenance_markdown, run_one, short_error, split_list, write_json,
+    BUILTIN, backend_ms_median, build_row, command_line, discover_datasets, fmt, log, machine_info,
+    markdown_table, prepare_builtin, provenance_markdown, short_error, split_list, write_json,
 )
 
 MODES = ("filter", "smooth", "ba")
@@ -159,6 +163,13 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames per run")
     p.add_argument("--docs", type=Path, default=None, help="also write the table with its provenance into this file")
     p.add_argument("--progress", action="store_true", help="show each run's per-frame progress bar")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, default=None,
+                       help="run on a local Dask cluster of this many single-threaded processes "
+                            "(default: one after another in this process)")
+    where.add_argument("--scheduler", default=None, metavar="ADDRESS", help="run on this Dask scheduler")
+    p.add_argument("--skip-complete", action="store_true",
+                   help="skip the runs whose folders are complete (as 'eifslam batch' does; default: redo them)")
     args = p.parse_args(argv)
     args.modes = split_list(args.modes)
     args.detectors = split_list(args.detectors)
@@ -167,6 +178,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         p.error(f"unknown or empty mode/detector: {bad or '(empty list)'}; modes {MODES}, detectors {DETECTORS}")
     if args.max_frames is not None and args.max_frames < 2:
         p.error("--max-frames must be at least 2")
+    if args.workers is not None and args.workers < 1:
+        p.error("--workers must be at least 1")
     return args
 
 
@@ -194,16 +207,51 @@ def select_datasets(data: Path, only: Sequence[str] | None) -> tuple[list[tuple[
     return [(n, p) for n, p in found if n in wanted], [n for n in wanted if n not in names]
 
 
-def main(argv: Sequence[str] | None = None, runner: Callable[..., dict[str, Any]] | None = None) -> int:
+def result_row(task: Any, row: Mapping[str, Any], scene: Any = None) -> dict[str, Any]:
+    """This script's row (``_common.build_row``) of a finished batch task.
+
+    Parameters
+    ----------
+    task : eifslam.evaluation.batch.BatchTask
+    row : mapping
+        The task's row from :mod:`eifslam.evaluation.batch` (``status``, ``seconds``, ``error``).
+    scene : BuiltinScene, optional
+        For the built-in scene: adds the box-ratio figures (also written to ``report.json``).
+    """
+    rep = None
+    try:
+        rep = json.loads((Path(task.out_dir) / "report.json").read_text())
+    except (OSError, ValueError):
+        pass
+    if not isinstance(rep, dict):  # the run gave no report: its error is the row's
+        return build_row(task.dataset, task.mode, task.features, None, error=row.get("error") or "no report.json",
+                         status=row.get("status"), seconds=row.get("seconds"))
+    extra: dict[str, Any] = dict(status=row.get("status"), seconds=row.get("seconds"))
+    if scene is not None and rep.get("frames_tracked", 0) >= 3 and "box_ratio_true" not in rep:
+        from eifslam.evaluation.box_ratio import add_box_ratio
+
+        add_box_ratio(rep, task.out_dir, scene)
+    backend = backend_ms_median(Path(task.out_dir) / "frames.json")
+    if backend is not None:
+        extra["ms_backend"] = backend
+    return build_row(task.dataset, task.mode, task.features, rep, **extra)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
     """Run the matrix; return 0 when every run produced a report, 1 when some failed, 2 on bad input.
+
+    The runs are the tasks of ``eifslam batch`` (:mod:`eifslam.evaluation.batch`): one after
+    another in this process, or on Dask with ``--workers N`` / ``--scheduler ADDRESS``
+    (:func:`eifslam.cli.cluster.run_on_dask`).
 
     Parameters
     ----------
     argv : sequence of str, optional
         Arguments (default ``sys.argv[1:]``).
-    runner : callable, optional
-        Replacement of ``run_to_folder`` (tests).
     """
+    from eifslam.evaluation.batch import make_tasks, run_serial
+    from eifslam.system.config import SlamConfig
+
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parse_args(argv)
     datasets, missing = select_datasets(args.data, split_list(args.only))
@@ -214,36 +262,44 @@ def main(argv: Sequence[str] | None = None, runner: Callable[..., dict[str, Any]
         return 2
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    n_runs = len(datasets) * len(args.modes) * len(args.detectors)
-    log(f"{n_runs} runs: data sets {[n for n, _ in datasets]}, modes {args.modes}, detectors {args.detectors}"
-        + (f", at most {args.max_frames} frames each" if args.max_frames else ""))
+    configs = [SlamConfig().replace(frontend={"detector": det}, system={"mode": mode})
+               for mode in args.modes for det in args.detectors]
     rows: list[dict[str, Any]] = []
-    k = 0
+    scene = None
+    sources, names = [], []
     for name, folder in datasets:
-        scene = None
         if folder is None:
             try:
                 folder, scene = prepare_builtin(out)
             except Exception as exc:  # rendering failed: record it for every run of the scene
                 log(f"FAILED rendering the built-in scene: {type(exc).__name__}: {exc}")
-                for mode in args.modes:
-                    for det in args.detectors:
-                        k += 1
-                        rows.append(build_row(name, mode, det, None, error=f"rendering: {type(exc).__name__}: {exc}"))
-                write_json(out / "results.json", rows)
+                rows += [build_row(name, c.system.mode, c.frontend.detector, None,
+                                   error=f"rendering: {type(exc).__name__}: {exc}") for c in configs]
                 continue
-        for mode in args.modes:
-            for det in args.detectors:
-                k += 1
-                run_dir = out / f"{name}-{mode}-{det}"
-                log(f"[{k}/{n_runs}] {name} {mode} {det} -> {run_dir}")
-                row = run_one(folder, name, mode, det, run_dir, max_frames=args.max_frames, scene=scene,
-                              quiet=not args.progress, runner=runner)
-                rows.append(row)
-                write_json(out / "results.json", rows)
-                if row["error"] is None:
-                    log(f"[{k}/{n_runs}] done: {row['frames_tracked']}/{row['frames']} tracked, "
-                        f"ATE {fmt(row['ate_rmse'])}, {fmt(row['total_seconds'])} s")
+        sources.append(folder)
+        names.append(name)
+    tasks = make_tasks(sources, configs, out, max_frames=args.max_frames, html=False, names=names)
+    log(f"{len(tasks)} runs: data sets {names}, modes {args.modes}, detectors {args.detectors}"
+        + (f", at most {args.max_frames} frames each" if args.max_frames else ""))
+    done: dict[int, dict[str, Any]] = {}
+
+    def on_row(k: int, row: Mapping[str, Any]) -> None:
+        task = tasks[k]
+        done[k] = result_row(task, row, scene if task.dataset == BUILTIN else None)
+        write_json(out / "results.json", rows + [done[i] for i in sorted(done)])
+        log(f"[{len(done)}/{len(tasks)}] {task.name} {row['status']}: "
+            + (row["error"] or f"{row['tracked']}/{row['frames']} tracked, ATE {fmt(row['ate_rmse'])}, "
+                               f"{fmt(row['seconds'])} s"))
+
+    if args.workers is None and args.scheduler is None:
+        run_serial(tasks, force=not args.skip_complete, quiet=not args.progress, on_row=on_row)
+    else:
+        from eifslam.cli.cluster import run_on_dask
+
+        run_on_dask(tasks, workers=args.workers, scheduler=args.scheduler, force=not args.skip_complete,
+                    on_row=on_row)
+    rows += [done[i] for i in sorted(done)]
+    write_json(out / "results.json", rows)
     table = format_table(rows)
     command = command_line(__file__, argv)
     (out / "results.md").write_text(f"# eifslam results\n\n`{command}`\n\n" + table + "\n" + table_notes(args.max_frames))

@@ -213,3 +213,14 @@ def test_run_all_records_failures(tmp_path):
     rows = json.loads((tmp_path / "out" / "results.json").read_text())
     assert rc == 1 and len(rows) == 2 and all(r["error"] for r in rows)
     assert run_all.main(["--data", str(data), "--out", str(tmp_path / "o2"), "--only", "nothing"]) == 2
+
+
+def test_batch_speedup_picks_the_smallest_sets(tmp_path):
+    batch_speedup = _load("batch_speedup")
+    for name, n in (("big", 5), ("small", 2), ("mid", 3), ("other", 3)):
+        (tmp_path / name / "images").mkdir(parents=True)
+        for k in range(n):
+            (tmp_path / name / "images" / f"{k:03d}.png").write_bytes(b"")
+        (tmp_path / name / "images" / "notes.txt").write_text("not an image")
+    assert batch_speedup.smallest_datasets(tmp_path, 3) == [("small", 2), ("mid", 3), ("other", 3)]
+    assert batch_speedup.smallest_datasets(tmp_path / "missing", 4) == []

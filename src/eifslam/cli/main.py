@@ -24,7 +24,7 @@ from .. import __version__
 from ..errors import EifslamError
 
 #: sub-command modules, in the order ``--help`` lists them
-COMMANDS = ("demo", "run", "render", "eval", "config")
+COMMANDS = ("demo", "run", "batch", "render", "eval", "config")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -16,15 +16,17 @@ _DEFAULT = SlamConfig()
 SCALE_KINDS = ("pose", "feature")
 
 
-def add_common_options(p: argparse.ArgumentParser, max_features: int | None = None) -> None:
-    """Options shared by ``run`` and ``demo``; every default is the configuration's
-    (``SlamConfig()``) unless the command passes its own ``max_features``."""
+def add_common_options(p: argparse.ArgumentParser, max_features: int | None = None, several: bool = False) -> None:
+    """Options shared by ``run``, ``demo`` and ``batch``; every default is the configuration's
+    (``SlamConfig()``) unless the command passes its own ``max_features``. With ``several``
+    (``batch``), ``--mode`` and ``--features`` take one or more values (a list)."""
     fe, sy = _DEFAULT.frontend, _DEFAULT.system
+    nargs = "+" if several else None
     p.add_argument("--out", required=True, type=Path, help="output folder")
-    p.add_argument("--mode", choices=[m.value for m in Mode], default=None,
+    p.add_argument("--mode", choices=[m.value for m in Mode], default=None, nargs=nargs,
                    help=f"filter only, filter + relinearise + smooth, or filter + full bundle adjustment "
                         f"(default {sy.mode.value})")
-    p.add_argument("--features", choices=list(DETECTORS), default=None,
+    p.add_argument("--features", choices=list(DETECTORS), default=None, nargs=nargs,
                    help=f"feature detector (default {fe.detector.value})")
     p.add_argument("--map-fraction", type=float, default=None,
                    help=f"fraction of tracks kept in the map (Ωm); default {fe.map_fraction:g}, measured "
@@ -39,7 +41,8 @@ def add_common_options(p: argparse.ArgumentParser, max_features: int | None = No
     p.add_argument("--seed", type=int, default=None,
                    help=f"seed of the front end's random draws (frontend.seed, default {fe.seed})")
     p.add_argument("--force", action="store_true",
-                   help="write into an output folder that already holds eifslam outputs (they are replaced)")
+                   help="redo the tasks whose output folders are complete (else they are skipped)" if several
+                   else "write into an output folder that already holds eifslam outputs (they are replaced)")
     talk = p.add_mutually_exclusive_group()
     talk.add_argument("-q", "--quiet", action="store_true", help="no progress bar and no summary line")
     talk.add_argument("-v", "--verbose", action="store_true",
