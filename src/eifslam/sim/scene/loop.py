@@ -62,6 +62,8 @@ PILLAR_SIZE = 0.3
 PILLAR_HEIGHT = 3.0
 PILLAR_SPACING = 2.6
 _PANEL = 2.0  # target width of a wall panel (one poster each), metres
+#: material of the block's walls (see :mod:`eifslam.scene.photos`)
+WALL_MATERIAL = "tile:gravel"
 _TEXEL_BRICK = 0.004
 _TEXEL_PILLAR = 0.003
 _TEXEL_GROUND = 0.006
@@ -127,7 +129,7 @@ def _block_surfaces(rng: np.random.Generator, cells: list[tuple[str, int]], seed
             mid = centre + (-0.5 * length + (i + 0.5) * pw) * along
             tint = (rng.uniform(0.45, 0.75), rng.uniform(0.55, 0.85), rng.uniform(0.8, 1.0))
             out.append(_rect(f"block{w}/{i}", "wall", mid + 0.5 * BLOCK_HEIGHT * ez, n, along, pw,
-                             BLOCK_HEIGHT, _TEXEL_BRICK, seed, "tile:brick", tint))
+                             BLOCK_HEIGHT, _TEXEL_BRICK, seed, WALL_MATERIAL, tint))
             width = rng.uniform(0.9, 1.3)
             shift = rng.uniform(-0.5, 0.5) * (pw - width - 0.1)
             out.append(_poster(f"block{w}/{i}/poster", mid + shift * along, n, along, width,
