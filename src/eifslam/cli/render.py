@@ -32,7 +32,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentParser:
         "camera.yaml, times.txt, groundtruth.tum (and boxes.json for the boxes). "
         "--scene boxes: the paper's first experiment (three boxes on an oval table, one loop "
         "of a camera round it). --scene loop: the loop world (a camera walking laps round a "
-        "block of brick walls with posters and pillars, photographs from scikit-image).",
+        "block of walls with posters and pillars, photographs from scikit-image).",
     )
     p.add_argument("--scene", choices=tuple(DEFAULTS), default="boxes",
                    help="which scene (default boxes)")

@@ -109,8 +109,8 @@ class Surface:
         Constant BGR factors: a fixed Lambertian light times a tint per kind of surface
         (warm table, darker floor), each in ``(0, 1]``.
     material : str
-        What the texture is made of: ``"procedural"`` (:func:`eifslam.scene.textures.make_texture`,
-        the box scene) or a photograph-based material of :mod:`eifslam.scene.photos`
+        What the texture is made of: ``"procedural"`` (:func:`eifslam.sim.scene.textures.make_texture`,
+        the box scene) or a photograph-based material of :mod:`eifslam.sim.scene.photos`
         (``"tile:<image>"``, ``"poster:<image>:<cell>"``; the loop world).
     """
 

@@ -8,12 +8,15 @@ World frame (metres)
 --------------------
 * Origin on the ground at the centre of the block, ``z`` **up**; the ground is ``z = 0``.
 * The block is the box ``|x| <= BLOCK_HALF[0]``, ``|y| <= BLOCK_HALF[1]``, ``BLOCK_HEIGHT``
-  tall: brick walls (``skimage.data.brick``) with one poster per wall panel (a cell of one
-  of scikit-image's photographs, never shown twice) and pillars standing
-  ``PILLAR_OFFSET`` in front of the walls.
+  tall: walls of pebble-dash render (``skimage.data.gravel``, a different tint per 2 m
+  panel) with one poster per panel (a cell of one of scikit-image's photographs, never
+  shown twice) and pillars standing ``PILLAR_OFFSET`` in front of the walls. (Brick walls,
+  ``skimage.data.brick``, were tried first: with ORB the repeated bricks along the
+  horizontal epipolar lines of a sideways-moving camera gave wrong matches and the scale
+  collapsed a hundredfold within 80 frames; ``WALL_MATERIAL`` switches back.)
 * The ground is gravel (``skimage.data.gravel``) in 2 m tiles; the far side of the street
   is a hedge (``skimage.data.grass``) with posters, ``STREET_WIDTH`` from the block.
-* Camera poses are camera-to-world, as in :mod:`eifslam.scene.layout`.
+* Camera poses are camera-to-world, as in :mod:`eifslam.sim.scene.layout`.
 
 The path is a rounded rectangle at ``PATH_DISTANCE`` from the block's walls, walked
 counter-clockwise (seen from above) from the middle of the ``y = -BLOCK_HALF[1]`` side,
@@ -22,7 +25,7 @@ up to ``LAP_OFFSET`` and back over the run (so lap 2 passes a place a little far
 nearer than lap 1, and the last frame is back next to the first), with a small smooth
 walking wobble of height, heading, pitch and roll.
 
-This module is pure NumPy; the textures are made by :mod:`eifslam.scene.photos` when
+This module is pure NumPy; the textures are made by :mod:`eifslam.sim.scene.photos` when
 rendering.
 """
 
@@ -62,9 +65,9 @@ PILLAR_SIZE = 0.3
 PILLAR_HEIGHT = 3.0
 PILLAR_SPACING = 2.6
 _PANEL = 2.0  # target width of a wall panel (one poster each), metres
-#: material of the block's walls (see :mod:`eifslam.scene.photos`)
+#: material of the block's walls (see :mod:`eifslam.sim.scene.photos`)
 WALL_MATERIAL = "tile:gravel"
-_TEXEL_BRICK = 0.004
+_TEXEL_WALL = 0.004
 _TEXEL_PILLAR = 0.003
 _TEXEL_GROUND = 0.006
 _TEXEL_HEDGE = 0.01
@@ -117,7 +120,7 @@ def _poster(name: str, wall_point: Array, normal: Array, along: Array, width: fl
 
 
 def _block_surfaces(rng: np.random.Generator, cells: list[tuple[str, int]], seed0: int) -> list[Surface]:
-    """The block's brick wall panels, a poster on each, and the pillars in front."""
+    """The block's wall panels, a poster on each, and the pillars in front."""
     ez = np.array([0.0, 0.0, 1.0])
     out: list[Surface] = []
     seed = seed0
@@ -129,7 +132,7 @@ def _block_surfaces(rng: np.random.Generator, cells: list[tuple[str, int]], seed
             mid = centre + (-0.5 * length + (i + 0.5) * pw) * along
             tint = (rng.uniform(0.45, 0.75), rng.uniform(0.55, 0.85), rng.uniform(0.8, 1.0))
             out.append(_rect(f"block{w}/{i}", "wall", mid + 0.5 * BLOCK_HEIGHT * ez, n, along, pw,
-                             BLOCK_HEIGHT, _TEXEL_BRICK, seed, WALL_MATERIAL, tint))
+                             BLOCK_HEIGHT, _TEXEL_WALL, seed, WALL_MATERIAL, tint))
             width = rng.uniform(0.9, 1.3)
             shift = rng.uniform(-0.5, 0.5) * (pw - width - 0.1)
             out.append(_poster(f"block{w}/{i}/poster", mid + shift * along, n, along, width,
@@ -261,7 +264,7 @@ def make_loop_scene(n_frames: int = 1040, n_laps: int = 2, width: int = 640, hei
     Returns
     -------
     BuiltinScene
-        With no boxes (``ratio_box_index = -1``); :func:`~eifslam.scene.render.render_scene`
+        With no boxes (``ratio_box_index = -1``); :func:`~eifslam.sim.scene.render.render_scene`
         writes it in the shared data layout.
 
     Examples
@@ -289,8 +292,9 @@ def make_loop_scene(n_frames: int = 1040, n_laps: int = 2, width: int = 640, hei
     surfaces += _street_surfaces(rng, cells, 100_000 * int(seed) + 50_000)
     p, R = _trajectory(int(n_frames), int(n_laps), rng)
     desc = (f"Rendered by `eifslam render --scene loop`: the loop world, {int(n_laps)} laps of a "
-            f"camera walking round a {2 * BLOCK_HALF[0]:g} x {2 * BLOCK_HALF[1]:g} m block of brick "
-            "walls with posters and pillars (textures: photographs bundled with scikit-image).\n"
+            f"camera walking round a {2 * BLOCK_HALF[0]:g} x {2 * BLOCK_HALF[1]:g} m block of "
+            "rendered walls with posters and pillars (textures: photographs bundled with "
+            "scikit-image).\n"
             "World frame: origin on the ground at the block centre, z up, metres. Poses are "
             "camera-to-world (camera x right, y down, z forward). Exact ground truth.")
     return BuiltinScene(

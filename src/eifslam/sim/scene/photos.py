@@ -1,27 +1,28 @@
 """Textures made from real photographs that scikit-image ships (no download needed).
 
-The loop world (:mod:`eifslam.scene.loop`) covers its walls, pillars and ground with
-these, so that features behave as in real images. A :class:`~eifslam.scene.layout.Surface`
+The loop world (:mod:`eifslam.sim.scene.loop`) covers its walls, pillars and ground with
+these, so that features behave as in real images. A :class:`~eifslam.sim.scene.layout.Surface`
 names its material:
 
 ``"tile:<image>"``
     The image (e.g. ``brick``, ``gravel``, ``grass``) repeated with mirrored copies (no
     seams) at one source pixel per texel, from an offset and a half-turn chosen by the
-    face's seed (bricks are turned to lie in horizontal courses). Repetitive on purpose, like a real brick wall or path.
+    face's seed (bricks are turned to lie in horizontal courses). Repetitive on purpose,
+    like a real rendered wall, path or hedge.
 ``"poster:<image>:<cell>"``
     Cell ``cell`` of a grid cut over the image (:data:`POSTER_GRID`), stretched over the
     face. Distinct cells share no pixels, so two posters never show the same content and a
     place that looks alike on two laps is the same place.
 
 Every texture is multiplied by the face's ``shade`` (BGR lighting and tint). Images come
-from :mod:`skimage.data` functions whose files are inside the scikit-image package.
+from :mod:`skimage.data` functions whose files are inside the scikit-image package
+(scikit-image is imported on first use, OpenCV only to make a texture).
 """
 
 from __future__ import annotations
 
 import functools
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -120,6 +121,8 @@ def photo_texture(material: str, width: int, height: int, seed: int,
     -------
     (height, width, 3) uint8 BGR image.
     """
+    import cv2
+
     kind, _, rest = material.partition(":")
     if kind == "tile" and rest in TILE_IMAGES:
         img = _tiled(rest, int(width), int(height), np.random.default_rng(seed))

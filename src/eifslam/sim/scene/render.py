@@ -61,7 +61,7 @@ def _cached_levels(nu: int, nv: int, seed: int, shade: tuple[float, float, float
 
     Each level halves the previous one with area averaging (sizes rounded), so it still
     spans the whole face. ``material`` is ``"procedural"`` (:func:`make_texture`) or a
-    photograph material of :func:`~eifslam.scene.photos.photo_texture`.
+    photograph material of :func:`~eifslam.sim.scene.photos.photo_texture`.
     """
     if material == "procedural":
         bgr = make_texture(nu, nv, seed, shade)
