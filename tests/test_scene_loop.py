@@ -130,3 +130,30 @@ def test_render_loop_command_writes_a_loadable_folder(tmp_path):
     assert "loop world" in (out / "README.md").read_text()
     # --laps belongs to the loop scene only
     assert main(["render", "--laps", "3", "--out", str(tmp_path / "b")]) == 1
+
+
+def test_loop_world_benchmark_drift_figures(tmp_path):
+    """benchmarks/loop_world.py scores drift: none for the truth, the right amount for an
+    estimate whose scale shrinks along the run (known answer)."""
+    import importlib.util
+    from pathlib import Path
+
+    from eifslam.io.trajectory import write_tum
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "loop_world.py"
+    spec = importlib.util.spec_from_file_location("bench_loop_world", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    s = make_loop_scene(n_frames=400)
+    write_tum(tmp_path / "gt.tum", s.timestamps, s.positions, s.quats_wxyz)
+    write_tum(tmp_path / "same.tum", s.timestamps, s.positions, s.quats_wxyz)
+    d = bench.drift_figures(tmp_path / "same.tum", tmp_path / "gt.tum")
+    assert d["end_lap1_error_m"] < 1e-6 and d["end_lap2_error_m"] < 1e-6
+    np.testing.assert_allclose(d["lap_gap"], d["lap_gap_true"], atol=1e-6)
+    # each step 0.1% shorter than the last: positions drift towards where the run started
+    steps = np.diff(s.positions, axis=0) * (0.999 ** np.arange(399))[:, None]
+    P = np.vstack([s.positions[:1], s.positions[0] + np.cumsum(steps, axis=0)])
+    write_tum(tmp_path / "drift.tum", s.timestamps, P, s.quats_wxyz)
+    d = bench.drift_figures(tmp_path / "drift.tum", tmp_path / "gt.tum")
+    assert 0.5 < d["end_lap1_error_m"] < d["end_lap2_error_m"] < 5.0
+    assert d["lap_gap_median_m"] > 2 * d["lap_gap_true_max_m"]
