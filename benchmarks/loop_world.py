@@ -168,6 +168,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="fraction of lap 1 the drift alignment uses (default 0.2)")
     ap.add_argument("--run-args", default="", help="further `eifslam run` options, one string")
     ap.add_argument("--tag", default="", help="suffix of the run folders and of the JSON/PNG names")
+    ap.add_argument("--score-only", action="store_true",
+                    help="do not run: score the runs already in OUT/<detector>[-TAG]/")
     args = ap.parse_args(argv)
     data, out = Path(args.data), Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -180,7 +182,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     for det in split_list(args.detectors):
         log(f"running {args.mode} {det} on {data} {' '.join(extra)}")
         run_dir = out / f"{det}{tag}"
-        row = run_cli(data, run_dir, args.mode, det, extra, args.max_frames)
+        if args.score_only:
+            import json
+
+            rep_path = run_dir / "report.json"
+            rep = json.loads(rep_path.read_text()) if rep_path.is_file() else None
+            row = build_row("loopworld", args.mode, det, rep, error=None if rep else f"no {rep_path}")
+        else:
+            row = run_cli(data, run_dir, args.mode, det, extra, args.max_frames)
         row["run_args"] = args.run_args
         if row.get("error") is None:
             d = drift_figures(run_dir / "trajectory.tum", data / "groundtruth.tum", args.align_fraction)
