@@ -38,7 +38,7 @@ from ...errors import ConfigError
 from ...geometry.camera import PinholeCamera
 from ...geometry.rotations import rotmat_to_quat
 from .layout import BuiltinScene, Surface, look_at
-from .photos import POSTER_GRID, poster_cells
+from .photos import cell_size, poster_cells
 
 Array = NDArray[np.float64]
 
@@ -106,13 +106,7 @@ def _poster(name: str, wall_point: Array, normal: Array, along: Array, width: fl
     """A poster of photo cell ``cell``, ``width`` wide, its bottom ``lift`` above the ground,
     1 cm in front of the wall point ``wall_point`` (its centre along the wall)."""
     img, c = cell
-    rows, cols = POSTER_GRID[img]
-    from .photos import source_image  # the cell's aspect ratio needs its pixel size
-
-    h, w = source_image(img).shape[:2]
-    if img == "retina":
-        h, w = h - 2 * (h // 5), w - 2 * (w // 5)
-    ch, cw = h // rows, w // cols
+    ch, cw = cell_size(img)
     height = width * ch / cw
     centre = wall_point + 0.01 * normal + np.array([0.0, 0.0, lift + 0.5 * height])
     return _rect(name, "poster", centre, normal, along, width, height, width / cw, seed,

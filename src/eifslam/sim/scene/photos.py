@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from ...errors import ConfigError
 
-__all__ = ["POSTER_GRID", "poster_cells", "photo_texture", "source_image"]
+__all__ = ["POSTER_GRID", "poster_cells", "cell_size", "photo_texture", "source_image"]
 
 #: images cut into posters, and their grid (rows, columns); every one is a photograph
 #: bundled with scikit-image (the left view only of the stereo pair, one of the two cats)
@@ -72,15 +72,29 @@ def poster_cells() -> list[tuple[str, int]]:
     return [(name, c) for name, (r, k) in POSTER_GRID.items() for c in range(r * k)]
 
 
+def cell_size(name: str) -> tuple[int, int]:
+    """Nominal ``(height, width)`` in pixels of a poster cell of image ``name``: the
+    (cropped) image size over the grid, rounded down (a cell may be a pixel larger)."""
+    rows, cols = POSTER_GRID[name]
+    h, w = _cropped(name).shape[:2]
+    return h // rows, w // cols
+
+
+def _cropped(name: str) -> NDArray[np.uint8]:
+    """The part of image ``name`` that is cut into posters."""
+    img = source_image(name)
+    if name == "retina":  # the fundus photograph sits in a black disc: use its central square
+        h, w = img.shape[:2]
+        img = img[h // 5: h - h // 5, w // 5: w - w // 5]
+    return img
+
+
 def _cell(name: str, cell: int) -> NDArray[np.uint8]:
     """The pixels of grid cell ``cell`` (row-major) of image ``name``."""
     rows, cols = POSTER_GRID[name]
     if not 0 <= cell < rows * cols:
         raise ConfigError(f"poster cell {cell} out of range for {name!r}")
-    img = source_image(name)
-    if name == "retina":  # the fundus photograph sits in a black disc: use its central square
-        h, w = img.shape[:2]
-        img = img[h // 5: h - h // 5, w // 5: w - w // 5]
+    img = _cropped(name)
     h, w = img.shape[:2]
     r, c = divmod(cell, cols)
     return img[r * h // rows:(r + 1) * h // rows, c * w // cols:(c + 1) * w // cols]
