@@ -1,8 +1,10 @@
-"""``eifslam render``: write the built-in scene (the paper's first experiment) as a data set.
+"""``eifslam render``: write a built-in scene as a data set.
 
-Example::
+``--scene boxes`` (default) is the paper's first experiment, ``--scene loop`` the loop
+world (two laps round a block of textured walls, for loop closure). Examples::
 
     eifslam render --out builtin --frames 54 --noise 1.0
+    eifslam render --scene loop --out loopworld
 """
 
 from __future__ import annotations
@@ -17,26 +19,36 @@ __all__ = ["add_parser", "run"]
 
 #: most frames ``render`` writes (one loop round the table; 54 in the paper)
 MAX_FRAMES = 10_000
+#: per scene: frames, width, height, horizontal field of view (degrees), laps
+DEFAULTS = {"boxes": (54, 1024, 768, 56.0, 1), "loop": (1040, 640, 480, 60.0, 2)}
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentParser:
     """Register the ``render`` sub-command."""
     p = sub.add_parser(
         "render",
-        help="render the built-in three-boxes-on-a-table scene to a data set folder",
-        description="Render the built-in scene of the paper's first experiment (three boxes "
-        "on an oval table, one loop of a camera round it) into the data set folder layout: "
-        "images/, camera.yaml, times.txt, groundtruth.tum, boxes.json.",
+        help="render a built-in scene (three boxes on a table, or the loop world) to a data set folder",
+        description="Render a built-in scene into the data set folder layout: images/, "
+        "camera.yaml, times.txt, groundtruth.tum (and boxes.json for the boxes). "
+        "--scene boxes: the paper's first experiment (three boxes on an oval table, one loop "
+        "of a camera round it). --scene loop: the loop world (a camera walking laps round a "
+        "block of walls with posters and pillars, photographs from scikit-image).",
     )
+    p.add_argument("--scene", choices=tuple(DEFAULTS), default="boxes",
+                   help="which scene (default boxes)")
     p.add_argument("--out", required=True, help="output folder (created if missing)")
-    p.add_argument("--frames", type=int, default=54, help="number of images (default 54)")
+    p.add_argument("--frames", type=int, default=None,
+                   help="number of images (default 54 for boxes, 1040 for loop)")
+    p.add_argument("--laps", type=int, default=None,
+                   help="laps of the path, loop scene only (default 2)")
     p.add_argument("--noise", type=float, default=0.0, metavar="SIGMA",
                    help="Gaussian pixel noise, grey levels (default 0)")
     p.add_argument("--blur", type=float, default=0.0, metavar="SIGMA",
                    help="Gaussian blur, pixels (default 0)")
-    p.add_argument("--width", type=int, default=1024, help="image width (default 1024)")
-    p.add_argument("--height", type=int, default=768, help="image height (default 768)")
-    p.add_argument("--hfov", type=float, default=56.0, help="horizontal field of view, degrees")
+    p.add_argument("--width", type=int, default=None, help="image width (default 1024 boxes, 640 loop)")
+    p.add_argument("--height", type=int, default=None, help="image height (default 768 boxes, 480 loop)")
+    p.add_argument("--hfov", type=float, default=None,
+                   help="horizontal field of view, degrees (default 56 boxes, 60 loop)")
     p.add_argument("--seed", type=int, default=0, help="seed of textures, wobble and noise")
     p.set_defaults(func=run)
     return p
@@ -49,26 +61,40 @@ def run(args: argparse.Namespace) -> int:
     from ..io.files import ensure_output_dir
     from ..io.image_header import check_image_size
     from ..sim.scene import make_scene
+    from ..sim.scene.loop import make_loop_scene
     from ..sim.scene.render import render_scene
 
+    frames, width, height, hfov, laps = DEFAULTS[args.scene]
+    frames = frames if args.frames is None else args.frames
+    width = width if args.width is None else args.width
+    height = height if args.height is None else args.height
+    hfov = hfov if args.hfov is None else args.hfov
+    if args.laps is not None and args.scene != "loop":
+        raise ConfigError("--laps applies to --scene loop only")
+    laps = laps if args.laps is None else args.laps
     if not (math.isfinite(args.noise) and math.isfinite(args.blur) and args.noise >= 0 and args.blur >= 0):
         raise ConfigError(f"--noise and --blur must be finite and >= 0, got {args.noise} and {args.blur}")
-    if not math.isfinite(args.hfov):
-        raise ConfigError(f"--hfov must be finite, got {args.hfov}")
-    if not 2 <= args.frames <= MAX_FRAMES:
-        raise ConfigError(f"--frames must lie in [2, {MAX_FRAMES}], got {args.frames}")
+    if not math.isfinite(hfov):
+        raise ConfigError(f"--hfov must be finite, got {hfov}")
+    if not 2 <= frames <= MAX_FRAMES:
+        raise ConfigError(f"--frames must lie in [2, {MAX_FRAMES}], got {frames}")
+    if not 1 <= laps <= 100:
+        raise ConfigError(f"--laps must lie in [1, 100], got {laps}")
     try:
-        check_image_size(args.width, args.height, "--width/--height")
+        check_image_size(width, height, "--width/--height")
     except EifslamError as exc:
         raise ConfigError(str(exc)) from None
     ensure_output_dir(args.out)
-    scene = make_scene(n_frames=args.frames, width=args.width, height=args.height,
-                       hfov_deg=args.hfov, seed=args.seed)
+    if args.scene == "loop":
+        scene = make_loop_scene(n_frames=frames, n_laps=laps, width=width, height=height,
+                                hfov_deg=hfov, seed=args.seed)
+    else:
+        scene = make_scene(n_frames=frames, width=width, height=height, hfov_deg=hfov, seed=args.seed)
     t0 = time.perf_counter()
     with tqdm(total=scene.n_frames, desc="render", unit="frame") as bar:
         out = render_scene(scene, args.out, noise_sigma=args.noise, blur_sigma=args.blur,
                            seed=args.seed, progress=lambda k: bar.update(1))
     dt = time.perf_counter() - t0
-    print(f"wrote {scene.n_frames} frames of {args.width}x{args.height} to {out} "
+    print(f"wrote {scene.n_frames} frames of {width}x{height} to {out} "
           f"({dt / scene.n_frames:.3f} s/frame incl. textures and PNG)")
     return 0

@@ -1,7 +1,9 @@
-"""The built-in scene of the paper's first experiment: three boxes on an oval table.
+"""The built-in scenes: the paper's first experiment (three boxes on an oval table) and
+the loop world (two laps round a block of textured walls, :mod:`eifslam.sim.scene.loop`).
 
 Pure parts (importing them loads neither OpenCV nor matplotlib):
-:func:`make_scene`, :class:`BuiltinScene`, :class:`Box`, :func:`estimate_box_ratio`.
+:func:`make_scene`, :func:`make_loop_scene`, :class:`BuiltinScene`, :class:`Box`,
+:func:`estimate_box_ratio`.
 Rendering (:func:`render_frame`, :func:`render_scene`) uses OpenCV and is imported lazily,
 on first access.
 
@@ -17,12 +19,14 @@ from typing import Any
 
 from .boxes import RectangleFit, estimate_box_ratio, fit_rectangle, top_face_mask
 from .layout import Box, BuiltinScene, Surface, make_scene
+from .loop import make_loop_scene
 
 __all__ = [
     "Box",
     "BuiltinScene",
     "Surface",
     "make_scene",
+    "make_loop_scene",
     "estimate_box_ratio",
     "fit_rectangle",
     "top_face_mask",

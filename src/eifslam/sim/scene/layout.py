@@ -39,6 +39,7 @@ __all__ = [
     "BuiltinScene",
     "make_scene",
     "box_corners",
+    "look_at",
     "TABLE_SEMI_AXES",
     "TABLE_HEIGHT",
     "ROOM_HALF_SIZE",
@@ -107,6 +108,10 @@ class Surface:
     shade : (float, float, float)
         Constant BGR factors: a fixed Lambertian light times a tint per kind of surface
         (warm table, darker floor), each in ``(0, 1]``.
+    material : str
+        What the texture is made of: ``"procedural"`` (:func:`eifslam.sim.scene.textures.make_texture`,
+        the box scene) or a photograph-based material of :mod:`eifslam.sim.scene.photos`
+        (``"tile:<image>"``, ``"poster:<image>:<cell>"``; the loop world).
     """
 
     name: str
@@ -120,6 +125,7 @@ class Surface:
     shape: str
     seed: int
     shade: tuple[float, float, float]
+    material: str = "procedural"
 
     @property
     def normal(self) -> Array:
@@ -194,6 +200,10 @@ class BuiltinScene:
         Index into ``boxes`` of the box whose top face is 0.80:1.
     seed : int
         Seed of the textures and of the trolley's small wobble.
+    description : str
+        The body of the rendered folder's ``README.md`` (scene, world frame, files).
+    world_frame : str
+        Short description of the world frame (the ``groundtruth.tum`` header).
     """
 
     camera: PinholeCamera
@@ -204,6 +214,12 @@ class BuiltinScene:
     surfaces: list[Surface]
     ratio_box_index: int
     seed: int
+    description: str = (
+        "Rendered by `eifslam render` (the paper's first experiment: three boxes on an oval table, "
+        "a camera moving once round it).\nWorld frame: origin at the table-top centre, z up, "
+        "metres. Poses are camera-to-world (camera x right, y down, z forward). Exact ground "
+        "truth; `boxes.json` gives the box corners and which box has the 0.80:1 top face.")
+    world_frame: str = "table centre, z up, m"
 
     @property
     def n_frames(self) -> int:
@@ -297,8 +313,8 @@ def _room_surfaces(seed0: int) -> list[Surface]:
     return out
 
 
-def _look_at(p: Array, target: Array) -> Array:
-    """``R_wc`` of a camera at ``p`` looking at ``target`` with zero roll (world z up)."""
+def look_at(p: Array, target: Array) -> Array:
+    """(3, 3) ``R_wc`` of a camera at ``p`` (world, m) looking at ``target`` with zero roll (world z up)."""
     z = target - p
     z = z / np.linalg.norm(z)
     x = np.cross(z, np.array([0.0, 0.0, 1.0]))
@@ -321,7 +337,7 @@ def _trajectory(n_frames: int, rng: np.random.Generator) -> tuple[Array, Array]:
                          CAMERA_HEIGHT + 0.01 * np.sin(2 * th + ph[1])])
     target = np.asarray(LOOK_AT) + np.column_stack(
         [0.04 * np.sin(2 * th + ph[2]), 0.04 * np.cos(3 * th + ph[3]), np.zeros_like(th)])
-    R = np.stack([_look_at(p[k], target[k]) for k in range(n_frames)])
+    R = np.stack([look_at(p[k], target[k]) for k in range(n_frames)])
     return p, R
 
 

@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from ...errors import ConfigError, DatasetError
 from ...geometry.rotations import quat_wxyz_to_xyzw
 from .layout import BuiltinScene, Surface
+from .photos import photo_texture
 from .textures import ellipse_alpha, make_texture
 
 __all__ = ["render_frame", "render_scene", "BACKGROUND_BGR"]
@@ -53,14 +54,19 @@ class _Texture:
     dv: tuple[float, ...]
 
 
-@functools.lru_cache(maxsize=128)
-def _cached_levels(nu: int, nv: int, seed: int, shade: tuple[float, float, float], shape: str) -> tuple[NDArray[np.uint8], ...]:
+@functools.lru_cache(maxsize=512)
+def _cached_levels(nu: int, nv: int, seed: int, shade: tuple[float, float, float], shape: str,
+                   material: str = "procedural") -> tuple[NDArray[np.uint8], ...]:
     """Mip-map pyramid of a BGRA texture; cached, so re-made scenes reuse their textures.
 
     Each level halves the previous one with area averaging (sizes rounded), so it still
-    spans the whole face.
+    spans the whole face. ``material`` is ``"procedural"`` (:func:`make_texture`) or a
+    photograph material of :func:`~eifslam.sim.scene.photos.photo_texture`.
     """
-    bgr = make_texture(nu, nv, seed, shade)
+    if material == "procedural":
+        bgr = make_texture(nu, nv, seed, shade)
+    else:
+        bgr = photo_texture(material, nu, nv, seed, shade)
     alpha = ellipse_alpha(nu, nv) if shape == "ellipse" else np.full((nv, nu), 255, np.uint8)
     levels = [np.dstack([bgr, alpha])]
     while min(levels[-1].shape[:2]) >= 16:
@@ -76,7 +82,7 @@ def _build_texture(face: Surface) -> _Texture:
     """The texture of one face (texel counts rounded from ``size / texel``)."""
     nu = max(2, int(round(face.size_u / face.texel)))
     nv = max(2, int(round(face.size_v / face.texel)))
-    levels = _cached_levels(nu, nv, face.seed, tuple(face.shade), face.shape)
+    levels = _cached_levels(nu, nv, face.seed, tuple(face.shade), face.shape, face.material)
     du = tuple(face.size_u / lev.shape[1] for lev in levels)
     dv = tuple(face.size_v / lev.shape[0] for lev in levels)
     return _Texture(levels, du, dv)
@@ -219,7 +225,7 @@ def boxes_json(scene: BuiltinScene) -> dict:
 
 
 def _write_metadata(scene: BuiltinScene, out: Path) -> None:
-    """camera.yaml, times.txt, groundtruth.tum, boxes.json, README.md."""
+    """camera.yaml, times.txt, groundtruth.tum, boxes.json (scenes with boxes), README.md."""
     cam = scene.camera
     camera = {"model": "pinhole", "width": cam.width, "height": cam.height, "fx": float(cam.fx),
               "fy": float(cam.fy), "cx": float(cam.cx), "cy": float(cam.cy),
@@ -227,17 +233,13 @@ def _write_metadata(scene: BuiltinScene, out: Path) -> None:
     (out / "camera.yaml").write_text(yaml.safe_dump(camera, sort_keys=False, default_flow_style=None))
     (out / "times.txt").write_text("".join(f"{t:.6f}\n" for t in scene.timestamps))
     q = quat_wxyz_to_xyzw(scene.quats_wxyz)
-    lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world; world: table centre, z up, m)\n"]
+    lines = [f"# timestamp tx ty tz qx qy qz qw (camera-to-world; world: {scene.world_frame})\n"]
     for t, pk, qk in zip(scene.timestamps, scene.positions, q):
         lines.append(f"{t:.6f} " + " ".join(f"{v:.9f}" for v in (*pk, *qk)) + "\n")
     (out / "groundtruth.tum").write_text("".join(lines))
-    (out / "boxes.json").write_text(json.dumps(boxes_json(scene), indent=1))
-    (out / "README.md").write_text(
-        "# eifslam built-in scene\n\nRendered by `eifslam render` (the paper's first experiment: "
-        "three boxes on an oval table, a camera moving once round it).\n"
-        "World frame: origin at the table-top centre, z up, metres. Poses are camera-to-world "
-        "(camera x right, y down, z forward). Exact ground truth; `boxes.json` gives the box "
-        "corners and which box has the 0.80:1 top face.\n")
+    if scene.boxes:
+        (out / "boxes.json").write_text(json.dumps(boxes_json(scene), indent=1))
+    (out / "README.md").write_text(f"# eifslam built-in scene\n\n{scene.description}\n")
 
 
 def render_scene(scene: BuiltinScene, out_dir: str | Path, noise_sigma: float = 0.0,
@@ -247,7 +249,7 @@ def render_scene(scene: BuiltinScene, out_dir: str | Path, noise_sigma: float = 
 
     Writes ``out_dir/images/000000.png ...``, ``camera.yaml``, ``times.txt``,
     ``groundtruth.tum`` (``timestamp tx ty tz qx qy qz qw``, camera-to-world),
-    ``boxes.json`` and ``README.md``.
+    ``boxes.json`` (when the scene has boxes) and ``README.md``.
 
     Parameters
     ----------
