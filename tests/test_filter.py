@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 from scipy.stats import chi2
@@ -198,3 +200,30 @@ def test_robust_smoothing_drops_a_wrong_relative_pose():
     # so the distortion is smaller than when it replaced it: 2.6x here, was > 3x) ...
     assert plain > 2 * clean
     assert robust < 1.5 * clean  # ... and robust smoothing undoes it
+
+
+def test_smoothing_never_returns_a_higher_common_cost_than_the_filter():
+    """Robust smoothing scores every estimate on the measurements it started with, capped
+    at the gates. With a wrong ZR/ZT fused and no rejection round, the passes average it
+    in and raise that cost: the filter's estimate and information come back unchanged.
+    With rejection rounds the wrong one is dropped and the result is below the filter's."""
+    from eifslam.geometry.rotations import quat_exp, quat_to_rotmat
+    from eifslam.estimation.measurements import RelativePose
+
+    sc, f = run(corridor_scene, 7, noise=True, gate_chi2=None,
+                system={"min_feature_parallax_deg": 3.0, "relative_gate_chi2": None})
+    rp = next(r for r in f.store.relative if (r.i, r.j) == (5, 6))
+    t = quat_to_rotmat(quat_exp(np.array([0.0, np.radians(40.0), 0.0]))) @ rp.t_ij
+    f.fuse_relative([RelativePose(rp.i, rp.j, rp.q_ij, t, rp.cov)])
+    f.complete_estimate()
+    x0, I0, n_rel = f.x.copy(), f.information_matrix().copy(), len(f.store.relative)
+    g = copy.deepcopy(f)
+    rep = smooth(f, max_passes=6, feature_chi2=30.0, relative_chi2=50.0, max_rounds=0)
+    assert rep.kept == "filter" and rep.common_costs[1] > rep.common_costs[0]
+    assert "raised the common cost" in rep.reason
+    np.testing.assert_array_equal(f.x, x0)
+    assert abs(f.information_matrix() - I0).max() == 0 and len(f.store.relative) == n_rel
+    rep = smooth(g, max_passes=6, feature_chi2=30.0, relative_chi2=50.0)
+    assert rep.kept != "filter" and rep.rejected_relative == 1
+    assert min(rep.common_costs) == rep.common_costs[-1] < rep.common_costs[0]
+    assert errors(sc, g)[0] < 0.7 * errors(sc, f)[0]
