@@ -107,15 +107,15 @@ def pose_nees(f, sc, k):
 def nees_runs():
     """NEES of the latest pose after filtering and after smoothing, 50 Monte Carlo runs.
 
-    Settings (the filter is linearised once, so its consistency depends on how well
-    features are triangulated when they enter): new features need 4 degrees of parallax,
-    and neither gate is used. Measured with 50 runs of 10 frames (chi-square interval
-    5.08 - 7.00): at the system's defaults (2 degrees, Zm gate 9.21, ZR/ZT gate 50) the
-    filter's mean NEES is 14.7 and the smoothed one 7.7; with both gates off 13.9 and 7.0;
-    with 3 degrees and no gates 7.4-7.5 and 6.0-6.8; with 4 degrees and no gates 6.4 and
-    5.8. The gates reject measurements by their innovation at the first, rough
-    linearisation point (e.g. a correct ZR/ZT against a pose from a few map features), which
-    the covariance does not account for.
+    Settings: new features need 4 degrees of parallax, and neither gate is used. Measured
+    with 50 runs of 10 frames (chi-square interval 5.08 - 7.00; `benchmarks/consistency.py
+    --runs 50 --frames 10 --every 10 --set ...`), with first-estimates Jacobians and
+    new features refined on all their views: here 5.9 (filter) and 5.8 (smooth); at
+    the system's defaults (2 degrees, Zm gate 9.21, ZR/ZT gate 50) 9.5 and 7.5 (before
+    those two changes 14.7 and 7.7); at 2 degrees without gates 8.1 and 5.8. What is
+    left at the defaults is the gates, which test innovations against the measurement
+    noise alone (not the state's uncertainty), and the first estimates of features
+    triangulated with little parallax; see docs/estimator.md, Consistency.
     """
     runs, frames = 50, 10
     vals: dict[str, list[float]] = {"filter": [], "smooth": []}
