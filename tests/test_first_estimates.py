@@ -1,4 +1,5 @@
-"""First-estimates Jacobians of the filter and the multi-view first estimate of new features."""
+"""The consistency changes: first-estimates Jacobians, the multi-view first estimate of new
+features, and the ZR/ZT gate statistic with the poses' uncertainty."""
 
 from __future__ import annotations
 
@@ -100,3 +101,24 @@ def test_perturbed_pose_first_estimate_is_kept_by_add_pose():
     f.add_pose(2, np.array([0.1, 0.0, 1.2]), q)
     cols = f.layout.pose_columns([2])[0]
     np.testing.assert_allclose(f.first_estimates[cols], np.concatenate([[0.1, 0.0, 1.2], q]))
+
+
+def test_relative_gate_statistic_adds_the_poses_uncertainty():
+    """Against a pose known exactly the statistic is the measurement's own normalised
+    innovation squared; the pose uncertainty lowers it (a larger innovation covariance)."""
+    from eifslam.sim.frontend import SyntheticFrontEnd
+    from eifslam.system.slam import Slam
+    from eifslam.system.tracking import relative_gate_statistic
+
+    sc = corridor_scene(3, np.random.default_rng(1))
+    fe = SyntheticFrontEnd(sc, 1, map_fraction=1.0)
+    slam = Slam(sc.camera, fe.slam_config(), frontend=fe)
+    for k in range(3):
+        slam.track(k)
+    f = slam.filter
+    rp = next(r for r in f.store.relative if r.i == 0)  # pose 0 is fixed by its prior
+    _, _, W, innov = f.linearise_relative([rp])
+    plain = float(innov[0] @ W[0] @ innov[0])
+    assert relative_gate_statistic(f, rp, None) == pytest.approx(plain, rel=1e-4)
+    C = np.diag([1e-4] * 3 + [1e-5] * 3)
+    assert relative_gate_statistic(f, rp, C) < 0.9 * plain
