@@ -217,11 +217,13 @@ def test_smoothing_never_returns_a_higher_common_cost_than_the_filter():
     f.fuse_relative([RelativePose(rp.i, rp.j, rp.q_ij, t, rp.cov)])
     f.complete_estimate()
     x0, I0, n_rel = f.x.copy(), f.information_matrix().copy(), len(f.store.relative)
+    fe0 = f.first_estimates.copy()
     g = copy.deepcopy(f)
     rep = smooth(f, max_passes=6, feature_chi2=30.0, relative_chi2=50.0, max_rounds=0)
     assert rep.kept == "filter" and rep.common_costs[1] > rep.common_costs[0]
     assert "raised the common cost" in rep.reason
     np.testing.assert_array_equal(f.x, x0)
+    np.testing.assert_array_equal(f.first_estimates, fe0)
     assert abs(f.information_matrix() - I0).max() == 0 and len(f.store.relative) == n_rel
     rep = smooth(g, max_passes=6, feature_chi2=30.0, relative_chi2=50.0)
     assert rep.kept != "filter" and rep.rejected_relative == 1
