@@ -224,3 +224,21 @@ def test_batch_speedup_picks_the_smallest_sets(tmp_path):
         (tmp_path / name / "images" / "notes.txt").write_text("not an image")
     assert batch_speedup.smallest_datasets(tmp_path, 3) == [("small", 2), ("mid", 3), ("other", 3)]
     assert batch_speedup.smallest_datasets(tmp_path / "missing", 4) == []
+
+
+def test_consistency_benchmark_writes_its_json(tmp_path):
+    """benchmarks/consistency.py on 2 tiny runs: the JSON the issue asks for, and the
+    interval of the mean NEES (50 runs of 6 DOF: 5.08-7.00)."""
+    consistency = _load("consistency")
+    lo, hi = consistency.interval(50)
+    assert lo == pytest.approx(5.08, abs=0.01) and hi == pytest.approx(7.00, abs=0.01)
+    assert consistency.parse_sets(["filter.gate_chi2=none", "system.min_feature_parallax_deg=4"]) == \
+        {"filter": {"gate_chi2": None}, "system": {"min_feature_parallax_deg": 4}}
+    assert consistency.main(["--out", str(tmp_path), "--runs", "2", "--frames", "6", "--every", "3"]) == 0
+    res = json.loads((tmp_path / "consistency.json").read_text())
+    for mode in ("filter", "smooth"):
+        assert set(res[mode]) >= {"mean_nees", "lo", "hi", "runs", "frames"}
+        assert res[mode]["runs"] == 2 and res[mode]["frames"] == 6
+        assert 0 < res[mode]["mean_nees"] < 1e3
+    assert res["per_frame"]["frame"] == [2, 5]
+    assert (tmp_path / "consistency.png").stat().st_size > 0

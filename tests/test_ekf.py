@@ -13,9 +13,11 @@ from eifslam.system.slam import Slam
 
 def run(sc, seed: int, ekf: bool, **kw):
     """The system over every frame of ``sc`` with the EIF (its default back end) or the
-    dense EKF, on the same simulated measurements; the filter at its complete estimate."""
+    dense EKF, on the same simulated measurements; the filter at its complete estimate.
+    The EKF linearises at its current mean, so the EIF runs without first-estimates
+    Jacobians here (linearised alike)."""
     fe = SyntheticFrontEnd(sc, seed, map_fraction=1.0, **kw)
-    config = fe.slam_config()
+    config = fe.slam_config(filter={"first_estimate_jacobians": False})
     slam = Slam(sc.camera, config, frontend=fe, backend=DenseEKF(sc.camera, config.filter) if ekf else None)
     for k in range(len(sc.positions)):
         slam.track(k)

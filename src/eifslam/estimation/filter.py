@@ -70,6 +70,7 @@ class InformationFilter:
         self.store = MeasurementStore()
         self.priors = PriorStore()
         self._x = np.zeros(64)
+        self._xfe = np.zeros(64)  # first estimates (config.first_estimate_jacobians)
         self._factor: SchurFactor | None = None
         # -- incremental recovery hook (eifslam.incremental) --
         self.recovery = Recovery.parse(recovery, "recovery")
@@ -114,6 +115,7 @@ class InformationFilter:
             "is_feature": np.array([k.kind == StateKind.FEATURE for k in order], bool),
             "id": np.array([k.id for k in order], np.int64),
             "x": x,
+            "x_first": self.first_estimates.copy(),
             "I": {"data": I.data.astype(float), "indices": I.indices.astype(np.int64),
                   "indptr": I.indptr.astype(np.int64)},
             "i": self.information_vector(),
@@ -159,6 +161,7 @@ class InformationFilter:
         check_index(indices, n, "array 'indices'")
         self.info.set(sp.csc_matrix((data, indices, indptr), shape=(n, n)), take(d, "i", np.float64, (n,)))
         self._x[:n] = take(d, "x", np.float64, (n,))
+        self._xfe[:n] = take(d, "x_first", np.float64, (n,)) if "x_first" in d else self._x[:n]
         pp = sub(d, "prior_pose")
         pids = take_ids(pp, "ids")
         self._check_states(StateKind.POSE, pids, "prior_pose")
@@ -212,12 +215,20 @@ class InformationFilter:
         """Current estimate ``(dim,)`` (a view; linearisation point)."""
         return self._x[: self.dim]
 
+    @property
+    def first_estimates(self) -> Array:
+        """First estimate of every state ``(dim,)`` (a view): its initial guess, or its value
+        at the last :meth:`relinearise` (``config.first_estimate_jacobians`` uses it)."""
+        return self._xfe[: self.dim]
+
     def _grow(self) -> None:
         n = self.dim
         if n > len(self._x):
-            new = np.zeros(max(n, 2 * len(self._x)))
-            new[: len(self._x)] = self._x
-            self._x = new
+            size = max(n, 2 * len(self._x))
+            for name in ("_x", "_xfe"):
+                new, old = np.zeros(size), getattr(self, name)
+                new[: len(old)] = old
+                setattr(self, name, new)
         self.info.grow(n)
 
     def add_pose(self, frame_id: int, p: Array, q: Array) -> None:
@@ -229,6 +240,7 @@ class InformationFilter:
         off = self.layout.add_pose(frame_id)
         self._grow()
         self._x[off : off + 3], self._x[off + 3 : off + 7] = p, q
+        self._xfe[off : off + 7] = self._x[off : off + 7]
         self._factor = None
         self._fuse(factors.quat_norm(self.layout, self.x, [frame_id], self.config.quat_norm_sigma))
         self.priors.weak[(StateKind.POSE, int(frame_id))] = np.concatenate([p, q])
@@ -242,7 +254,7 @@ class InformationFilter:
         for tid, xyz in zip(track_ids, X):
             off = self.layout.add_feature(tid)
             self._grow()
-            self._x[off : off + 3] = xyz
+            self._x[off : off + 3] = self._xfe[off : off + 3] = xyz
             self.priors.weak[(StateKind.FEATURE, int(tid))] = xyz.copy()
         self._factor = None
         if len(X):
@@ -313,9 +325,15 @@ class InformationFilter:
         ok : (N,) bool, usable (predicted depth above ``min_depth``, finite, inside the gate).
         idx : (N, 10) state indices ``[pose 7, feature 3]``; J : (N, 2, 10);
         W : (N, 2, 2) information; innov : (N, 2) ``z - h(x)``; chi2 : (N,) normalised
-        innovation squared (``inf`` where not finite or behind the camera).
+        innovation squared (``inf`` where not finite or behind the camera). With
+        ``config.first_estimate_jacobians``, ``J`` is taken at the first estimates (and
+        a measurement must be usable there too); everything else at ``x``.
         """
-        return factors.features(self.layout, self.x, self.camera, self.config, obs, gate)
+        ok, idx, J, W, innov, chi2 = factors.features(self.layout, self.x, self.camera, self.config, obs, gate)
+        if self.config.first_estimate_jacobians and len(obs):
+            fe = factors.features(self.layout, self.first_estimates, self.camera, self.config, obs, gate=False)
+            ok, J = ok & fe[0], fe[2]
+        return ok, idx, J, W, innov, chi2
 
     def fuse_features(self, obs: FeatureObservations, store: bool = True, gate: bool = True) -> FeatureObservations:
         """Fuse a batch of ``Zm``; return the measurements actually fused.
@@ -339,9 +357,13 @@ class InformationFilter:
         Returns
         -------
         idx : (N, 14) state indices ``[pose i, pose j]``; J : (N, 5, 14);
-        W : (N, 5, 5) information of the joint measurement; innov : (N, 5).
+        W : (N, 5, 5) information of the joint measurement; innov : (N, 5). ``J`` at the
+        first estimates with ``config.first_estimate_jacobians``.
         """
-        return factors.relative(self.layout, self.x, self.config, rps)
+        idx, J, W, innov = factors.relative(self.layout, self.x, self.config, rps)
+        if self.config.first_estimate_jacobians:
+            J = factors.relative(self.layout, self.first_estimates, self.config, rps)[1]
+        return idx, J, W, innov
 
     def fuse_relative(self, rps: list[RelativePose], store: bool = True) -> None:
         """Fuse ``ZR`` and ``ZT`` of each relative pose jointly (5x5 covariance)."""
@@ -388,7 +410,9 @@ class InformationFilter:
         """Rebuild ``I`` and ``i`` from zero at the current ``x``: the gauge and scale
         priors, the weak priors, the quaternion-norm pseudo-measurements and every stored
         measurement (smoothing, paper III-E). Stored ``Zm`` are not gated again: the set
-        the filter accepted is a fixed problem."""
+        the filter accepted is a fixed problem. The current ``x`` becomes every state's
+        first estimate."""
+        self.first_estimates[:] = self.x
         self.info.reset()
         self._factor = None
         for fid, (p, q) in self.priors.pose.items():

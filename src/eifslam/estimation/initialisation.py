@@ -104,3 +104,63 @@ def triangulate(
     parallax = np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
     ok = (den > 1e-12) & (la > 0) & (lb > 0) & np.all(np.isfinite(X), 1)
     return X, parallax, ok
+
+
+def refine_points(
+    X: Array, feature: NDArray[np.int64], p: Array, q: Array, uv: Array, camera: PinholeCamera,
+    iterations: int = 5,
+) -> tuple[Array, NDArray[np.bool_]]:
+    """Refine points on every view of them, the poses held fixed (Gauss-Newton on pixels).
+
+    A new feature enters the filter with every observation it has, and the filter keeps
+    the Jacobians of all of them at its first estimate, so that estimate should be the
+    best the observations give for the current poses, not a two-view midpoint.
+
+    Parameters
+    ----------
+    X : (F, 3) initial points (e.g. :func:`triangulate`).
+    feature : (N,) index into ``X`` of each observation.
+    p, q : (N, 3), (N, 4) the observing poses (centres, ``q_wc``).
+    uv : (N, 2) measured pixels.
+    camera : PinholeCamera
+    iterations : int
+        Gauss-Newton iterations (each one damped to keep the cost from rising).
+
+    Returns
+    -------
+    X : (F, 3) refined points (the initial one where refinement did not lower the cost).
+    ok : (F,) bool, every view sees the refined point in front of it.
+    """
+    from ..geometry.models import feature_model
+
+    X = np.array(X, float).reshape(-1, 3)
+    F = len(X)
+    feature = np.asarray(feature, np.int64)
+
+    def residual(Xs: Array) -> tuple[Array, Array, Array]:
+        h, _, Jf, z = feature_model(p, q, Xs[feature], camera.fx, camera.fy, camera.cx, camera.cy)
+        r = uv - h
+        cost = np.zeros(F)
+        np.add.at(cost, feature, np.where(z > 0, np.sum(r**2, 1), 1e12))
+        return r, Jf, cost
+
+    r, Jf, cost = residual(X)
+    for _ in range(iterations):
+        A = np.zeros((F, 3, 3))
+        b = np.zeros((F, 3))
+        np.add.at(A, feature, np.einsum("nki,nkj->nij", Jf, Jf))
+        np.add.at(b, feature, np.einsum("nki,nk->ni", Jf, r))
+        A += 1e-9 * np.trace(A, axis1=1, axis2=2)[:, None, None] * np.eye(3) + 1e-12 * np.eye(3)
+        step = np.linalg.solve(A, b[..., None])[..., 0]
+        Xn = X + step
+        rn, Jn, cn = residual(Xn)
+        better = np.all(np.isfinite(Xn), 1) & (cn < cost)
+        X = np.where(better[:, None], Xn, X)
+        cost = np.where(better, cn, cost)
+        if not better.any():
+            break
+        r, Jf, _ = residual(X)
+    _, _, _, z = feature_model(p, q, X[feature], camera.fx, camera.fy, camera.cx, camera.cy)
+    front = np.ones(F, bool)
+    np.logical_and.at(front, feature, z > 0)
+    return X, front

@@ -85,6 +85,15 @@ class FilterConfig:
         its initial guess, so that a state whose measurements were all rejected (gate,
         depth) never makes ``I`` singular. Its information, ``1e-6`` by default, is
         negligible next to any measurement's; it touches diagonal blocks only.
+    first_estimate_jacobians : bool
+        Linearise every new ``Zm`` and ``ZR``/``ZT`` with Jacobians at the *first*
+        estimates of the states it involves (the initial guesses they entered with;
+        smoothing's relinearisation makes the smoothed estimate the new first one), the
+        innovation at the current estimate (first-estimates Jacobians, Huang, Mourikis &
+        Roumeliotis 2008). The filter never relinearises what it fused, so Jacobians of
+        one state at different points would give it information in directions the
+        measurements cannot observe (drift of position, orientation and scale) and make
+        it overconfident as a run goes on (``docs/estimator.md``, Consistency).
     """
 
     prior_sigma: float = 1e-6
@@ -95,6 +104,7 @@ class FilterConfig:
     gate_chi2: float | None = None
     min_depth: float = 1e-6
     weak_prior_sigma: float = 1e3
+    first_estimate_jacobians: bool = True
 
     def __post_init__(self) -> None:
         for key in ("prior_sigma", "scale_prior_sigma", "quat_norm_sigma", "min_depth", "weak_prior_sigma"):

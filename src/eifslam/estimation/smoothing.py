@@ -18,13 +18,36 @@ import scipy.sparse as sp
 
 from ..errors import EstimatorError
 from .filter import InformationFilter
+from .measurements import FeatureObservations, RelativePose
 from .scale import recover_scale, rescale  # noqa: F401  (re-exported)
 
 
 @dataclass
 class SmoothingReport:
-    """What :func:`smooth` did: the update norms (state units) and the measurement cost
-    (sum of squared normalised residuals) before the first and after each pass."""
+    """What :func:`smooth` did.
+
+    Attributes
+    ----------
+    passes : int
+        Gauss-Newton passes run (all rounds).
+    step_norms : list of float
+        Largest change of a state entry in each pass (state units; 0 for an undone pass).
+    costs : list of float
+        Measurement cost (:func:`measurement_cost`, the current measurement set) at the
+        start of each round and after each accepted pass.
+    common_costs : list of float
+        Cost on the common set: every measurement smoothing started with, each
+        normalised innovation squared capped at its gate (:func:`measurement_cost` with
+        ``feature_chi2``/``relative_chi2``; uncapped without gates). First at the filter's
+        estimate, then after each round. What is returned is the estimate with the
+        lowest value.
+    kept : str
+        ``"smoothed"``, ``"filter"`` (smoothing could not lower the common cost: the
+        filter's estimate and information are returned unchanged) or ``"smoothed
+        (rejection round N)"`` (the next round raised it and was undone).
+    reason : str
+        Why smoothing stopped, one line.
+    """
 
     passes: int = 0
     step_norms: list[float] = field(default_factory=list)
@@ -33,6 +56,9 @@ class SmoothingReport:
     stopped_by_cost: bool = False
     rejected_features: int = 0
     rejected_relative: int = 0
+    common_costs: list[float] = field(default_factory=list)
+    kept: str = "smoothed"
+    reason: str = ""
 
 
 def relinearise(filt: InformationFilter) -> None:
@@ -41,19 +67,34 @@ def relinearise(filt: InformationFilter) -> None:
     filt.relinearise()
 
 
-def measurement_cost(filt: InformationFilter) -> float:
-    """Sum of squared normalised residuals of every stored ``Zm``, ``ZR``/``ZT`` at ``x``.
+def measurement_cost(filt: InformationFilter, feature_chi2: float | None = None,
+                     relative_chi2: float | None = None, features: FeatureObservations | None = None,
+                     relative: list[RelativePose] | None = None) -> float:
+    """Sum of squared normalised residuals of ``Zm`` and ``ZR``/``ZT`` at ``x``.
 
-    A ``Zm`` behind the camera counts as ``1e6`` (it cannot be linearised).
+    Parameters
+    ----------
+    filt : InformationFilter
+    feature_chi2, relative_chi2 : float or None
+        Cap each ``Zm``'s (``ZR``/``ZT`` pair's) normalised innovation squared at this
+        value: the truncated least-squares cost that dropping the measurements above a
+        gate minimises, so estimates that keep different subsets of one set compare on
+        that whole set. ``None``: no cap, and a ``Zm`` behind the camera counts as
+        ``1e6`` (it cannot be linearised; with a cap it counts as the cap).
+    features, relative : optional
+        The measurements to score (default: every stored one).
     """
     total = 0.0
-    obs = filt.store.all_features()
+    obs = filt.store.all_features() if features is None else features
+    rel = filt.store.relative if relative is None else relative
     if len(obs):
         _, _, _, _, _, chi2 = filt.linearise_features(obs, gate=False)
-        total += float(np.sum(np.where(np.isfinite(chi2), chi2, 1e6)))
-    if filt.store.relative:
-        _, _, W, innov = filt.linearise_relative(filt.store.relative)
-        total += float(np.einsum("ni,nij,nj->", innov, W, innov))
+        chi2 = np.where(np.isfinite(chi2), chi2, 1e6)
+        total += float(np.sum(chi2 if feature_chi2 is None else np.minimum(chi2, feature_chi2)))
+    if rel:
+        _, _, W, innov = filt.linearise_relative(rel)
+        chi2 = np.einsum("ni,nij,nj->n", innov, W, innov)
+        total += float(np.sum(chi2 if relative_chi2 is None else np.minimum(chi2, relative_chi2)))
     return total
 
 
@@ -110,23 +151,35 @@ def _damped_solve(filt: InformationFilter, x0: np.ndarray, lam: float) -> np.nda
 def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
            feature_chi2: float | None = None, relative_chi2: float | None = None,
            max_rounds: int = 4) -> SmoothingReport:
-    """Relinearise and recover until the update is small (paper III-E).
+    """Relinearise and recover until the update is small (paper III-E); never worse than
+    the filter's estimate by the cost.
 
     Each pass relinearises every stored measurement at the current estimate, from zero
     information, and recovers: one Gauss-Newton step, as in the paper. A safeguard the
     paper does not need (its filter answer was close to the optimum): if a pass raises the
     measurement cost (:func:`measurement_cost`), the step is damped Levenberg-Marquardt
     style (``I + lam diag(I)``, ``lam`` grown tenfold up to 1e4) and, if still no better,
-    smoothing stops at the previous estimate.
+    smoothing stops at the previous estimate (``report.reason`` says so).
 
     Robust smoothing (``feature_chi2`` or ``relative_chi2`` given): after the passes,
     :func:`reject_outliers` drops the measurements the smoothed estimate contradicts,
     worst first, and the passes run again; at most ``max_rounds`` such rounds.
 
+    Rounds drop measurements, so their costs are not comparable with each other or with
+    the filter's. Every estimate (the filter's, and each round's) is therefore also scored
+    on one common set, the measurements smoothing started with, each capped at its gate
+    (``report.common_costs``: the truncated least-squares cost the rejection minimises;
+    without gates, the plain cost of every measurement). The estimate with the lowest
+    common cost is returned, with the measurement set it was smoothed on and its
+    information relinearised there; if none is below the filter's, the filter's estimate
+    and information are returned unchanged (``report.kept``, ``report.reason``). A round
+    that raises the common cost does not end the rounds: the next rejection may remove
+    what pulled it away (e.g. one wrong ``ZR``/``ZT`` averaged in before it is dropped).
+
     Parameters
     ----------
     filt : InformationFilter
-        Filter whose measurements are stored (changed in place).
+        Filter whose measurements are stored (changed in place), at its complete estimate.
     max_passes : int
         At most this many passes per round (default 5).
     tol : float
@@ -142,17 +195,54 @@ def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
         raise EstimatorError("smoothing needs at least one pass")
     rep = SmoothingReport()
     robust = feature_chi2 is not None or relative_chi2 is not None
+    obs0, rel0 = filt.store.all_features(), list(filt.store.relative)
+    feats0 = list(filt.store.features)
+    x0, I0, i0 = filt.x.copy(), filt.info.matrix().copy(), filt.info.vector.copy()
+    fe0 = filt.first_estimates.copy()
+
+    def common() -> float:
+        return measurement_cost(filt, feature_chi2, relative_chi2, obs0, rel0)
+
+    rep.common_costs.append(common())
+    best = (rep.common_costs[0], "filter", None)  # (cost, label, (x, features, relative) or None)
     if robust:  # Zm that cannot be linearised (behind a camera) only distort the cost
         rep.rejected_features += reject_outliers(filt, np.inf, None)[0]
-    _passes(filt, max_passes, tol, rep)
-    if robust:
-        for _ in range(max_rounds):
+    rises: list[str] = []
+    for rnd in range(max_rounds + 1):
+        if rnd > 0:
             n_f, n_r = reject_outliers(filt, feature_chi2, relative_chi2)
             rep.rejected_features += n_f
             rep.rejected_relative += n_r
             if n_f == 0 and n_r == 0:
+                rep.reason += "; no measurement left above the gates"
                 break
-            _passes(filt, max_passes, tol, rep)
+        _passes(filt, max_passes, tol, rep)
+        c = common()
+        rep.common_costs.append(c)
+        current = "smoothed" if rnd == 0 else f"smoothed (rejection round {rnd})"
+        if c <= best[0]:
+            best = (c, current, (filt.x.copy(), list(filt.store.features), list(filt.store.relative)))
+        else:  # kept going: the next rejection may remove what pulled this estimate away
+            rises.append(f"{current} raised the common cost from {best[0]:.6g} to {c:.6g}")
+        if not robust:
+            break
+    else:
+        rep.reason += f"; stopped after {max_rounds} rejection rounds"
+    undone = best[1] != current
+    if undone:
+        rep.reason += (f"; {', '.join(rises)} (a linearisation that pulls the estimate towards measurements "
+                       f"the gates then drop, or away from ones capped at the gates); kept the "
+                       f"{best[1]} estimate")
+    rep.kept = best[1]
+    if best[2] is None:  # the filter's own answer, as it was
+        filt.store.features, filt.store.relative = feats0, rel0
+        filt.info.set(I0, i0)
+        filt.set_estimate(x0)
+        filt.first_estimates[:] = fe0
+    elif undone:  # a later round was undone: back to the best one, information at its estimate
+        x, filt.store.features, filt.store.relative = best[2]
+        filt.set_estimate(x)
+        filt.relinearise()
     filt.invalidate()  # covariances: refactorise the undamped information on demand
     return rep
 
@@ -183,6 +273,9 @@ def _passes(filt: InformationFilter, max_passes: int, tol: float, rep: Smoothing
             filt.x[:] = before
             rep.step_norms.append(0.0)
             rep.stopped_by_cost = True
+            rep.reason = (f"pass {rep.passes} raised the cost from {cost:.6g} to {new_cost:.6g} even damped "
+                          f"(lam up to 1e4): the linearised step leaves the region where the model is "
+                          f"linear; kept the estimate before it")
             break
         lam = lam / 10.0 if lam > 1e-3 else 0.0
         cost = new_cost
@@ -191,7 +284,12 @@ def _passes(filt: InformationFilter, max_passes: int, tol: float, rep: Smoothing
         rep.step_norms.append(norm)
         if norm <= tol * ref or (lam == 0.0 and rep.costs[-2] - cost <= cost_tol * rep.costs[-2]):
             rep.converged = True
+            rep.reason = (f"converged: the last pass changed no state entry by more than {tol:g} of the scale"
+                          if norm <= tol * ref else
+                          f"converged: the last undamped pass lowered the cost by less than {cost_tol:.0%}")
             break
+    else:
+        rep.reason = f"stopped after {max_passes} passes"
 
 
 __all__ = ["SmoothingReport", "measurement_cost", "recover_scale", "reject_outliers", "relinearise", "rescale",

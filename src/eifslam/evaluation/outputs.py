@@ -79,7 +79,10 @@ def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
         eifslam_version=__version__, config=slam.config.to_dict(),
     )
     if slam.smoothing is not None:
-        rep["smoothing"] = dict(passes=slam.smoothing.passes, step_norms=slam.smoothing.step_norms)
+        sm = slam.smoothing
+        rep["smoothing"] = dict(passes=sm.passes, step_norms=sm.step_norms, common_costs=sm.common_costs,
+                                kept=sm.kept, reason=sm.reason, rejected_features=sm.rejected_features,
+                                rejected_relative=sm.rejected_relative)
     if slam.bundle_adjustment is not None:
         rep["ba"] = slam.bundle_adjustment.summary()
     if ground_truth is not None:

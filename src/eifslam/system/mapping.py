@@ -14,7 +14,7 @@ import time
 import numpy as np
 from numpy.typing import NDArray
 
-from ..estimation.initialisation import triangulate
+from ..estimation.initialisation import refine_points, triangulate
 from ..estimation.measurements import FeatureObservations
 from ..estimation.statedict import take, take_ids
 from ..geometry.camera import PinholeCamera
@@ -176,9 +176,15 @@ class Mapper:
                     tri.append((t, Xt, np.array([jj for jj, _ in hist] + [k]), np.array([vv for _, vv in hist] + [u])))
         if tri:
             counts = np.array([len(fr) for _, _, fr, _ in tri])
-            fits_all = self.fits(np.repeat(np.array([X for _, X, _, _ in tri]), counts, axis=0),
-                                 np.concatenate([fr for _, _, fr, _ in tri]),
-                                 np.concatenate([z for _, _, _, z in tri]))
+            frames = np.concatenate([fr for _, _, fr, _ in tri])
+            zs_all = np.concatenate([z for _, _, _, z in tri])
+            cols = filt.layout.pose_columns(frames)
+            # the first estimate every view of the feature will be linearised at: the best
+            # point those views give for the current poses, not the two-view midpoint
+            X_ref, front = refine_points(np.array([X for _, X, _, _ in tri]), np.repeat(np.arange(len(tri)), counts),
+                                         filt.x[cols[:, :3]], filt.x[cols[:, 3:]], zs_all, self.camera)
+            tri = [(t, X_ref[n] if front[n] else X, fr, z) for n, (t, X, fr, z) in enumerate(tri)]
+            fits_all = self.fits(np.repeat(np.array([X for _, X, _, _ in tri]), counts, axis=0), frames, zs_all)
             for (t, Xt, fr, zs), fits in zip(tri, np.split(fits_all, np.cumsum(counts)[:-1])):
                 if not (fits[0] and fits[-1]):
                     # the triangulating pair itself fails the gate: the feature would

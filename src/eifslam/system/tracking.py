@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..estimation.initialisation import pose_from_relative
-from ..estimation.localisation import localise_pose
+from ..estimation.localisation import localise_pose, map_pose_covariance
 from ..estimation.measurements import pack_relative, unpack_relative
 from ..estimation.statedict import sub, take_float
 from ..frontend.results import RelativePoseResult
@@ -25,7 +25,7 @@ from .mapping import Mapper, project
 
 Array = NDArray[np.float64]
 
-__all__ = ["Tracker", "agrees", "inlier_fraction"]
+__all__ = ["Tracker", "agrees", "inlier_fraction", "relative_gate_statistic"]
 
 
 def agrees(p_i: Array, p_k: Array, q_k: Array, sol, max_rot_deg: float, max_dir_deg: float) -> bool:
@@ -54,6 +54,31 @@ def agrees(p_i: Array, p_k: Array, q_k: Array, sol, max_rot_deg: float, max_dir_
     a, b = p_k - p_i, p - p_i
     cosang = float(a @ b / max(np.linalg.norm(a) * np.linalg.norm(b), 1e-300))
     return bool(rot <= max_rot_deg and cosang >= np.cos(np.radians(max_dir_deg)) and inl.mean() >= 0.5)
+
+
+def relative_gate_statistic(filt, rp, cov_j: Array | None) -> float:
+    """Normalised innovation squared of a ``ZR``/``ZT`` against its innovation covariance.
+
+    ``S = R + J_i P_i J_i^T + J_j P_j J_j^T``: the measurement's covariance plus the
+    uncertainty of the two poses it is tested against, pose *i* from the filter (marginal)
+    and pose *j* as localised on the map (``cov_j``, 6x6 ``[p, dtheta]``; None leaves it
+    out). Testing against ``R`` alone refuses correct measurements whenever the poses are
+    less certain than the measurement, and keeps only those that agree with the current
+    estimate: the filter then confirms itself and grows overconfident.
+    """
+    from ..geometry.rotations import quat_left_matrix
+
+    _, J, W, innov = filt.linearise_relative([rp])
+    S = np.linalg.inv(W[0])
+    for blk, fid, C in ((slice(0, 7), rp.i, filt.pose_covariance(rp.i)), (slice(7, 14), rp.j, cov_j)):
+        if C is None:
+            continue
+        E = np.zeros((7, 6))  # [dp, dtheta] -> [dp, dq], dq = q ⊗ [0, dtheta / 2]
+        E[:3, :3] = np.eye(3)
+        E[3:, 3:] = 0.5 * quat_left_matrix(filt.pose(fid)[1])[:, 1:]
+        Jt = J[0][:, blk] @ E
+        S += Jt @ C @ Jt.T
+    return float(innov[0] @ np.linalg.solve(S, innov[0]))
 
 
 def inlier_fraction(camera: PinholeCamera, p: Array, q: Array, X: Array, uv: Array, px: float) -> float:
@@ -186,13 +211,14 @@ class Tracker:
         init = pose_from_relative(p_i, q_i, rp, self.camera, Xk, uvk,
                                   default_step=sysc.scale_distance if first_step else self._last_step)
         p_k, q_k, step = init
-        use_relative, refined = True, False
+        use_relative, refined, cov_k = True, False, None
         if known.sum() >= sysc.min_map_features:  # a better linearisation point: refine on the known map
             sol = localise_pose(self.camera, p_k, q_k, Xk, uvk)
             frac = sol[2].mean() if sol is not None else 0.0
             if sol is not None and agrees(p_i, p_k, q_k, sol, max_rot_deg=sysc.agree_rotation_deg,
                                           max_dir_deg=sysc.agree_direction_deg):
                 p_k, q_k, refined = sol[0], sol[1], frac >= sysc.map_inlier_fraction
+                cov_k = map_pose_covariance(self.camera, p_k, q_k, Xk[sol[2]], self.config.zm_sigma_px)
             elif sol is not None and frac > sysc.contradiction_ratio * inlier_fraction(
                     self.camera, p_k, q_k, Xk, uvk, sysc.inlier_radius_px):
                 # the map contradicts this relative pose: trust the map, drop the ZR/ZT
@@ -203,15 +229,16 @@ class Tracker:
                 # baseline both guesses fit the map): linearise at the map's pose and let
                 # the chi-square gate below decide on the ZR/ZT
                 p_k, q_k, refined = sol[0], sol[1], True
+                cov_k = map_pose_covariance(self.camera, p_k, q_k, Xk[sol[2]], self.config.zm_sigma_px)
         self.mapper.reobserve(k, p_k, q_k)
         filt.add_pose(k, p_k, q_k)
         if first_step:
             filt.set_scale(rp.i, k, sysc.scale_distance)
         self._last_step = step if step > 0 else self._last_step
         if use_relative and refined and sysc.relative_gate_chi2 is not None:
-            # ZR/ZT against the pose the map supports: an inconsistent one is not fused
-            _, _, W, innov = filt.linearise_relative([rp])
-            if float(innov[0] @ W[0] @ innov[0]) > sysc.relative_gate_chi2:
+            # ZR/ZT against the pose the map supports, with both poses' uncertainty: an
+            # inconsistent one is not fused
+            if relative_gate_statistic(filt, rp, cov_k) > sysc.relative_gate_chi2:
                 use_relative = False
                 self.rejected_relative.append(rp)
         if use_relative:

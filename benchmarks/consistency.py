@@ -1,0 +1,175 @@
+"""Consistency of the system's uncertainty: NEES of the latest pose over Monte Carlo runs.
+
+Each run is a synthetic corridor (:func:`eifslam.sim.synthetic.corridor_scene`, its own
+scene and noise seed) measured by :class:`eifslam.sim.frontend.SyntheticFrontEnd` and run
+through the system (:class:`eifslam.system.slam.Slam`) at its default settings (only
+``system.sigma_px`` and ``system.scale_distance`` come from the simulation, so that the
+estimate is in the truth's gauge: first pose the identity, distance between the first two
+poses the true one). After every ``--every``-th frame the normalised estimation error
+squared (NEES) of the latest pose, 6 DOF ``[p, dtheta]``, is taken from the filter's
+estimate and covariance; at the same frames a copy of the system is smoothed
+(:meth:`Slam.smooth`) and scored the same way.
+
+The mean NEES over ``R`` runs is consistent when it lies inside the 95% interval of
+``chi2(6 R) / R``. ``--set SECTION.KEY=VALUE`` changes a setting (for the diagnosis in
+``docs/estimator.md``: e.g. ``--set filter.gate_chi2=none``).
+
+Writes ``DIR/consistency.json``::
+
+    {"filter": {"mean_nees", "lo", "hi", "runs", "frames"}, "smooth": {...},
+     "per_frame": {"frame": [...], "filter": [...], "smooth": [...]}, "settings": {...}}
+
+(``filter``/``smooth`` at the last frame; ``per_frame`` the mean NEES at each checkpoint)
+and ``DIR/consistency.png`` (mean NEES against frame, with the interval).
+
+    python benchmarks/consistency.py --out out/consistency            # 50 runs x 50 frames
+    python benchmarks/consistency.py --out /tmp/c --runs 5 --frames 20 # quick look
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import chi2
+
+from eifslam.geometry.rotations import quat_conjugate, quat_log, quat_multiply
+from eifslam.sim.frontend import SyntheticFrontEnd
+from eifslam.sim.synthetic import corridor_scene
+from eifslam.system.slam import Slam
+
+DOF = 6
+
+
+def pose_nees(filt, scene, k: int) -> float:
+    """NEES of pose *k* (6 DOF): the error ``[p_true - p, Log(q^* q_true)]`` against the
+    filter's 6x6 tangent covariance (:meth:`InformationFilter.pose_covariance`)."""
+    p, q = filt.pose(k)
+    e = np.concatenate([scene.positions[k] - p, quat_log(quat_multiply(quat_conjugate(q), scene.quats[k]))])
+    return float(e @ np.linalg.solve(filt.pose_covariance(k), e))
+
+
+def interval(runs: int, dof: int = DOF, level: float = 0.95) -> tuple[float, float]:
+    """Two-sided ``level`` interval of the mean of ``runs`` chi-square(``dof``) values."""
+    a = (1.0 - level) / 2.0
+    lo, hi = chi2.ppf([a, 1.0 - a], runs * dof) / runs
+    return float(lo), float(hi)
+
+
+def parse_sets(items: list[str]) -> dict[str, dict]:
+    """``["filter.gate_chi2=none", "system.min_feature_parallax_deg=4"]`` as config sections."""
+    out: dict[str, dict] = {}
+    for it in items:
+        key, _, val = it.partition("=")
+        sec, _, name = key.partition(".")
+        if not name:
+            raise SystemExit(f"--set {it!r}: expected SECTION.KEY=VALUE")
+        low = val.strip().lower()
+        v = None if low in ("none", "null") else True if low == "true" else False if low == "false" else val
+        if isinstance(v, str):
+            try:
+                v = float(v) if any(c in v for c in ".e") else int(v)
+            except ValueError:
+                pass
+        out.setdefault(sec, {})[name] = v
+    return out
+
+
+def one_run(seed: int, frames: int, checkpoints: list[int], sections: dict, map_fraction: float) -> dict:
+    """One Monte Carlo run: NEES of the latest pose at each checkpoint, filter and smoothed."""
+    sc = corridor_scene(frames, np.random.default_rng(seed))
+    fe = SyntheticFrontEnd(sc, seed, map_fraction=map_fraction)
+    slam = Slam(sc.camera, fe.slam_config(**sections), frontend=fe)
+    out: dict[str, list] = {"filter": [], "smooth": []}
+    for k in range(frames):
+        slam.track(k)
+        if k not in checkpoints:
+            continue
+        f = slam.filter
+        if k not in f.layout.pose_ids or f.priors.scale is None or tuple(f.priors.scale[:2]) != (0, 1):
+            out["filter"].append(np.nan)  # lost, or another gauge than the truth's: not scored
+            out["smooth"].append(np.nan)
+            continue
+        out["filter"].append(pose_nees(f, sc, k))
+        s = copy.deepcopy(slam) if k < frames - 1 else slam
+        s.smooth()
+        out["smooth"].append(pose_nees(s.filter, sc, k))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", required=True, type=Path)
+    ap.add_argument("--runs", type=int, default=50)
+    ap.add_argument("--frames", type=int, default=50)
+    ap.add_argument("--every", type=int, default=10, help="NEES after every this many frames (and the last)")
+    ap.add_argument("--seed", type=int, default=100, help="run r uses seed SEED + r")
+    ap.add_argument("--map-fraction", type=float, default=1.0,
+                    help="share of the scene's points in the map (1: every point, as the tests)")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    args = ap.parse_args(argv)
+    sections = parse_sets(args.set)
+    checkpoints = sorted({k for k in range(args.every - 1, args.frames, args.every)} | {args.frames - 1})
+    t0 = time.perf_counter()
+    rows = []
+    for r in range(args.runs):
+        rows.append(one_run(args.seed + r, args.frames, checkpoints, sections, args.map_fraction))
+        print(f"[consistency] run {r + 1}/{args.runs}: filter {rows[-1]['filter'][-1]:.2f} "
+              f"smooth {rows[-1]['smooth'][-1]:.2f}", file=sys.stderr, flush=True)
+    seconds = time.perf_counter() - t0
+    res: dict = {}
+    per_frame: dict[str, list] = {"frame": checkpoints}
+    for mode in ("filter", "smooth"):
+        V = np.array([row[mode] for row in rows], float)  # (runs, checkpoints)
+        ok = np.isfinite(V[:, -1])
+        n = int(ok.sum())
+        lo, hi = interval(n) if n else (float("nan"), float("nan"))
+        res[mode] = dict(mean_nees=float(np.mean(V[ok, -1])) if n else None, lo=lo, hi=hi, runs=n,
+                         frames=args.frames, median_nees=float(np.median(V[ok, -1])) if n else None,
+                         consistent=bool(n and lo <= np.mean(V[ok, -1]) <= hi))
+        per_frame[mode] = [float(np.nanmean(V[:, c])) for c in range(V.shape[1])]
+    res["per_frame"] = per_frame
+    res["settings"] = dict(sections=sections, map_fraction=args.map_fraction, seed=args.seed,
+                           seconds=round(seconds, 1), command=" ".join(sys.argv))
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "consistency.json").write_text(json.dumps(res, indent=1))
+    for mode in ("filter", "smooth"):
+        m = res[mode]
+        print(f"{mode}: mean NEES {m['mean_nees']:.2f} (95% interval {m['lo']:.2f}-{m['hi']:.2f}, "
+              f"{m['runs']} runs x {m['frames']} frames) {'consistent' if m['consistent'] else 'INCONSISTENT'}")
+    print(f"per frame {checkpoints}: filter {np.round(per_frame['filter'], 2).tolist()} "
+          f"smooth {np.round(per_frame['smooth'], 2).tolist()}  ({seconds:.0f} s)")
+    _plot(res, args.out / "consistency.png")
+    return 0
+
+
+def _plot(res: dict, path: Path) -> None:
+    """Mean NEES of the latest pose against frame, both modes, with the 95% interval."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pf = res["per_frame"]
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.plot(pf["frame"], pf["filter"], "o-", label="filter")
+    ax.plot(pf["frame"], pf["smooth"], "s-", label="smooth")
+    ax.axhspan(res["filter"]["lo"], res["filter"]["hi"], color="0.85", label="95% interval")
+    ax.axhline(DOF, color="k", lw=0.8)
+    ax.set_yscale("log")
+    ax.set_xlabel("frame (latest pose)")
+    ax.set_ylabel("mean NEES (6 DOF)")
+    ax.set_title(f"{res['filter']['runs']} Monte Carlo runs")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

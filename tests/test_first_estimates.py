@@ -1,0 +1,124 @@
+"""The consistency changes: first-estimates Jacobians, the multi-view first estimate of new
+features, and the ZR/ZT gate statistic with the poses' uncertainty."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from eifslam.estimation import factors
+from eifslam.estimation.filter import InformationFilter
+from eifslam.estimation.initialisation import refine_points, triangulate
+from eifslam.estimation.measurements import FeatureObservations
+from eifslam.estimation.options import FilterConfig
+from eifslam.estimation.scale import rescale
+from eifslam.geometry.rotations import quat_exp, quat_to_rotmat
+from eifslam.sim.synthetic import corridor_scene
+
+
+def _two_poses_one_point(first: bool) -> tuple[InformationFilter, np.ndarray]:
+    """A filter with poses 0, 1 and feature 7 at their initial guesses (no measurement)."""
+    sc = corridor_scene(3, np.random.default_rng(0))
+    f = InformationFilter(sc.camera, FilterConfig(first_estimate_jacobians=first), recovery="full")
+    f.add_pose(0, sc.positions[0], sc.quats[0])
+    f.add_pose(1, sc.positions[1], sc.quats[1])
+    X = sc.points[np.flatnonzero(sc.visible(1))[0]]
+    f.add_features([7], X[None])
+    return f, X
+
+
+@pytest.mark.parametrize("first", [True, False])
+def test_zm_jacobian_at_first_estimates_innovation_at_current(first):
+    f, X = _two_poses_one_point(first)
+    fe = f.first_estimates.copy()
+    np.testing.assert_array_equal(fe, f.x)
+    # the estimate moves (as a recovery would move it); the first estimates stay
+    f.x[f.layout.feature_columns([7])[0]] += [0.05, -0.03, 0.2]
+    f.x[f.layout.pose_columns([1])[0][:3]] += [0.01, 0.0, -0.02]
+    np.testing.assert_array_equal(f.first_estimates, fe)
+    obs = FeatureObservations.make(np.array([1]), np.array([7]), np.array([[300.0, 200.0]]), 1.0)
+    ok, idx, J, W, innov, chi2 = f.linearise_features(obs, gate=False)
+    at_x = factors.features(f.layout, f.x, f.camera, f.config, obs, False)
+    at_fe = factors.features(f.layout, fe, f.camera, f.config, obs, False)
+    np.testing.assert_array_equal(innov, at_x[4])  # innovation always at the current estimate
+    np.testing.assert_array_equal(chi2, at_x[5])
+    np.testing.assert_array_equal(J, (at_fe if first else at_x)[2])
+    assert np.abs(at_fe[2] - at_x[2]).max() > 1e-3  # the two points give different Jacobians
+
+
+def test_relinearise_rescale_and_sessions_carry_the_first_estimates():
+    f, _ = _two_poses_one_point(True)
+    f.x[:] += 0.01
+    f.relinearise()  # smoothing: every Jacobian now at x, which becomes the first estimate
+    np.testing.assert_array_equal(f.first_estimates, f.x)
+    fe = f.first_estimates.copy()
+    f.x[:] += 0.01
+    rescale(f, 2.0)
+    pos = f.layout.position_mask()
+    np.testing.assert_allclose(f.first_estimates[pos], 2.0 * fe[pos])
+    np.testing.assert_array_equal(f.first_estimates[~pos], fe[~pos])
+    g = InformationFilter(f.camera, f.config, recovery="full")
+    g.load_state_dict(f.state_dict())
+    np.testing.assert_array_equal(g.first_estimates, f.first_estimates)
+    d = f.state_dict()
+    del d["x_first"]  # a session saved before first estimates were kept: they start at x
+    h = InformationFilter(f.camera, f.config, recovery="full")
+    h.load_state_dict(d)
+    np.testing.assert_array_equal(h.first_estimates, h.x)
+
+
+def test_refine_points_recovers_points_from_many_views():
+    """Noise-free views from 8 poses: refinement from a perturbed start lands on the true
+    point; with pixel noise it fits every view better than the two-view midpoint."""
+    rng = np.random.default_rng(3)
+    sc = corridor_scene(8, rng)
+    vis = np.flatnonzero(np.all([sc.visible(k) for k in range(8)], 0))[:40]
+    P, Q = sc.positions.copy(), sc.quats.copy()
+    feature = np.repeat(np.arange(len(vis)), 8)
+    k = np.tile(np.arange(8), len(vis))
+    uv = np.concatenate([sc.project(kk, vis[[i]]) for i, kk in zip(feature, k)])
+    X0, _, ok = triangulate(P[0], Q[0], sc.project(0, vis), P[7], Q[7], sc.project(7, vis), sc.camera)
+    assert ok.all()
+    X, front = refine_points(X0 + rng.normal(0, 0.05, X0.shape), feature, P[k], Q[k], uv, sc.camera)
+    assert front.all()
+    np.testing.assert_allclose(X, sc.points[vis], atol=1e-7)
+    # with pixel noise: the refined points fit every view at least as well as the midpoints
+    uvn = uv + rng.normal(0, 1.0, uv.shape)
+    Xm, _, _ = triangulate(P[0], Q[0], uvn[k == 0], P[7], Q[7], uvn[k == 7], sc.camera)
+    Xr, _ = refine_points(Xm, feature, P[k], Q[k], uvn, sc.camera)
+
+    def cost(Xs):
+        h = np.concatenate([sc.camera.project((Xs[[i]] - P[kk]) @ quat_to_rotmat(Q[kk])) for i, kk in zip(feature, k)])
+        return np.sum((h - uvn) ** 2)
+
+    assert cost(Xr) < cost(Xm)
+    assert np.median(np.linalg.norm(Xr - sc.points[vis], axis=1)) < np.median(np.linalg.norm(Xm - sc.points[vis], axis=1))
+
+
+def test_perturbed_pose_first_estimate_is_kept_by_add_pose():
+    f, _ = _two_poses_one_point(True)
+    q = quat_exp(np.array([0.0, 0.01, 0.0]))
+    f.add_pose(2, np.array([0.1, 0.0, 1.2]), q)
+    cols = f.layout.pose_columns([2])[0]
+    np.testing.assert_allclose(f.first_estimates[cols], np.concatenate([[0.1, 0.0, 1.2], q]))
+
+
+def test_relative_gate_statistic_adds_the_poses_uncertainty():
+    """Against a pose known exactly the statistic is the measurement's own normalised
+    innovation squared; the pose uncertainty lowers it (a larger innovation covariance)."""
+    from eifslam.sim.frontend import SyntheticFrontEnd
+    from eifslam.system.slam import Slam
+    from eifslam.system.tracking import relative_gate_statistic
+
+    sc = corridor_scene(3, np.random.default_rng(1))
+    fe = SyntheticFrontEnd(sc, 1, map_fraction=1.0)
+    slam = Slam(sc.camera, fe.slam_config(), frontend=fe)
+    for k in range(3):
+        slam.track(k)
+    f = slam.filter
+    rp = next(r for r in f.store.relative if r.i == 0)  # pose 0 is fixed by its prior
+    _, _, W, innov = f.linearise_relative([rp])
+    plain = float(innov[0] @ W[0] @ innov[0])
+    assert relative_gate_statistic(f, rp, None) == pytest.approx(plain, rel=1e-4)
+    C = np.diag([1e-4] * 3 + [1e-5] * 3)
+    assert relative_gate_statistic(f, rp, C) < 0.9 * plain
