@@ -21,6 +21,12 @@ against the ground truth (scoring only, after the run):
   alignment, against the true distance (at most about 0.3 m). Without loop closure the
   estimate's gap grows with the drift; a loop closure should bring it back to the truth.
 
+``--places STEP`` instead checks that the world supports place recognition: every STEP-th
+frame of lap 2 is matched (ORB, ratio test 0.8, fundamental-matrix RANSAC at 1 px) against
+every STEP-th frame of lap 1; it reports how often the lap-1 frame with the most inliers is
+within STEP frames of the same place, the inliers of the true place and those of places
+more than 40 frames away (``OUT/places.json``); no SLAM is run.
+
 Writes ``OUT/<detector>[-TAG]/`` (the run), ``OUT/loop_world[-TAG].json`` (rows, machine,
 command) and ``OUT/loop_world[-TAG].png`` (top view of ground truth and estimates, lap gap against frame);
 prints a table. Timings depend on the machine's load.
@@ -69,6 +75,64 @@ def render_if_missing(data: Path, frames: int | None = None) -> None:
     scene = make_loop_scene() if frames is None else make_loop_scene(n_frames=frames)
     log(f"rendering the loop world ({scene.n_frames} frames) into {data}")
     render_scene(scene, data)
+
+
+def place_figures(data: Path, step: int = 10, n_features: int = 2000) -> dict[str, Any]:
+    """Lap-2 frames against lap-1 frames: is the best match the same place?
+
+    Parameters
+    ----------
+    data : Path
+        The rendered loop world (two laps; ``images/`` in frame order).
+    step : int
+        Every ``step``-th frame of each lap is used.
+    n_features : int
+        ORB features per image.
+
+    Returns
+    -------
+    dict
+        ``queries``, ``best_within_step`` (fraction), ``true_inliers_min``/``_median``,
+        ``far_inliers_max``/``_p99``/``_median`` (places more than 40 frames away).
+    """
+    import cv2
+
+    files = sorted((data / "images").iterdir())
+    n = len(files)
+    half = n // 2
+    orb = cv2.ORB_create(n_features)
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+
+    def feat(k: int):
+        return orb.detectAndCompute(cv2.imread(str(files[k]), cv2.IMREAD_GRAYSCALE), None)
+
+    def inliers(a, b) -> int:
+        (ka, da), (kb, db) = a, b
+        pairs = [p for p in bf.knnMatch(da, db, k=2) if len(p) == 2]
+        good = [m for m, o in pairs if m.distance < 0.8 * o.distance]
+        if len(good) < 8:
+            return 0
+        xa = np.float32([ka[m.queryIdx].pt for m in good])
+        xb = np.float32([kb[m.trainIdx].pt for m in good])
+        _, mask = cv2.findFundamentalMat(xa, xb, cv2.FM_RANSAC, 1.0, 0.999)
+        return 0 if mask is None else int(mask.sum())
+
+    lap1 = np.arange(0, half, step)
+    lap2 = np.arange(half, 2 * half, step)
+    f1 = [feat(int(k)) for k in lap1]
+    M = np.array([[inliers(feat(int(j)), a) for a in f1] for j in lap2])
+    true = lap2 - half
+
+    def ring(a: Any, b: Any) -> Any:
+        return np.abs((a - b + half // 2) % half - half // 2)
+
+    best = lap1[M.argmax(1)]
+    right = M[np.arange(len(lap2)), np.argmin(ring(lap1[None, :], true[:, None]), axis=1)]
+    far = M[ring(lap1[None, :], true[:, None]) > 40]
+    return dict(queries=int(len(lap2)), best_within_step=float(np.mean(ring(best, true) <= step)),
+                true_inliers_min=int(right.min()), true_inliers_median=float(np.median(right)),
+                far_inliers_max=int(far.max()), far_inliers_p99=float(np.percentile(far, 99)),
+                far_inliers_median=float(np.median(far)), step=int(step))
 
 
 def drift_figures(est_tum: Path, gt_tum: Path, align_fraction: float = 0.2) -> dict[str, Any]:
@@ -168,12 +232,20 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="fraction of lap 1 the drift alignment uses (default 0.2)")
     ap.add_argument("--run-args", default="", help="further `eifslam run` options, one string")
     ap.add_argument("--tag", default="", help="suffix of the run folders and of the JSON/PNG names")
+    ap.add_argument("--places", type=int, default=None, metavar="STEP",
+                    help="only the place-recognition check, every STEP-th frame (no SLAM)")
     ap.add_argument("--score-only", action="store_true",
                     help="do not run: score the runs already in OUT/<detector>[-TAG]/")
     args = ap.parse_args(argv)
     data, out = Path(args.data), Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     render_if_missing(data, args.frames)
+    if args.places:
+        fig = place_figures(data, args.places)
+        write_json(out / "places.json", dict(fig, machine=machine_info(),
+                                             command=command_line(__file__, sys.argv[1:] if argv is None else argv)))
+        print(markdown_table(tuple(fig), [[fmt(v) for v in fig.values()]]))
+        return 0
     import shlex
 
     extra = shlex.split(args.run_args)
