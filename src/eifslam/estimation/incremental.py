@@ -163,24 +163,36 @@ class IncrementalRecovery(ReactivatingWindow):
     full_solve_flops_per_entry : float
         Cost model of a rebuild (about one full sparse solve), in dense floating-point
         operations per state entry: a measurement of marginalised states re-activates
-        them when :meth:`reactivation_flops` is at most ``max(1e9, this * n)``, and
+        them when :meth:`reactivation_flops` is at most ``max(min_rebuild_flops, this * n)``, and
         rebuilds the window from one sparse factorisation otherwise (a loop closure
         after a long exploration). 2e4 makes a rebuild worth ~2e9 dense operations at
         100,000 entries, where it takes ~2 s (``docs/backend.md``).
+    min_rebuild_flops : float
+        Floor of that cost model (small states: re-activation is cheap either way).
+    rebuild_horizon : int
+        A rebuild keeps in the window every state measured within this many steps (at
+        least the windows), so that they are marginalised again one by one into
+        conditionals that can be undone: a feature seen again after a short gap then
+        re-activates instead of rebuilding once more (a sparse factorisation cannot be
+        undone).
     """
 
     feature_window: int = 2
     pose_window: int = 2
     stats: RecoveryStats = field(default_factory=RecoveryStats)
     full_solve_flops_per_entry: float = 2e4
+    min_rebuild_flops: float = 1e9
+    rebuild_horizon: int = 10
 
     def __post_init__(self) -> None:
-        for key in ("feature_window", "pose_window"):
+        for key in ("feature_window", "pose_window", "rebuild_horizon"):
             v = getattr(self, key)
             if not (isinstance(v, (int, np.integer)) and v >= 1):
                 raise ConfigError(f"{key} must be an integer >= 1, got {v!r}")
-        if not (np.isfinite(self.full_solve_flops_per_entry) and self.full_solve_flops_per_entry >= 0):
-            raise ConfigError("full_solve_flops_per_entry must be a non-negative number")
+        for key in ("full_solve_flops_per_entry", "min_rebuild_flops"):
+            v = getattr(self, key)
+            if not (np.isfinite(v) and v >= 0):
+                raise ConfigError(f"{key} must be a non-negative number, got {v!r}")
         self._map = EntryMap()
         self._last = np.zeros(0, np.int64)  # step of the last measurement, at block starts
         self._pos = np.zeros(0, np.int64)  # position in the window, -1 once marginalised
@@ -297,12 +309,12 @@ class IncrementalRecovery(ReactivatingWindow):
 
     def rebuild_flops(self) -> float:
         """The cost model of a rebuild (see ``full_solve_flops_per_entry``)."""
-        return max(1e9, self.full_solve_flops_per_entry * self._map.n)
+        return max(self.min_rebuild_flops, self.full_solve_flops_per_entry * self._map.n)
 
     # -- rebuild from the full information --------------------------------------------------
     def _rebuild(self, info: InformationStore, s: int) -> None:
-        """Window = recently measured features, their poses and recent poses (states just
-        measured included, however old); the rest ``m`` is eliminated exactly from the
+        """Window = features measured within ``rebuild_horizon`` steps, their poses and
+        recent poses (states just measured included, however old); the rest ``m`` is eliminated exactly from the
         full sparse ``I`` into one conditional: one sparse factorisation of ``I_mm``
         (features first, :func:`~eifslam.estimation.recovery.factorize` on the entries of
         ``m``, without extracting ``I_mm``), and ``I_am I_mm^-1 I_ma`` from ``k + 1``
@@ -315,14 +327,14 @@ class IncrementalRecovery(ReactivatingWindow):
         i = np.asarray(info.vector[:n], dtype=float)
         isf, start = self._map.is_feature, self._map.start
         age = s - self._last[start]
-        fa = np.flatnonzero(isf & (age < self.feature_window))
+        fa = np.flatnonzero(isf & (age < max(self.feature_window, self.rebuild_horizon)))
         pose_all = np.flatnonzero(~isf)
         Ifp = I[fa][:, pose_all]
         coupled = np.zeros(n, bool)
         coupled[pose_all[np.unique(Ifp.tocoo().col)]] = True
         blk_coupled = np.zeros(n, bool)
         blk_coupled[start[coupled]] = True
-        pa = np.flatnonzero(~isf & ((age < self.pose_window) | blk_coupled[start]))
+        pa = np.flatnonzero(~isf & ((age < max(self.pose_window, self.rebuild_horizon)) | blk_coupled[start]))
         active = np.zeros(n, bool)
         active[fa] = active[pa] = True
         m = np.flatnonzero(~active)
