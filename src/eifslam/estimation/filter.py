@@ -31,6 +31,7 @@ from .measurements import (FeatureObservations, MeasurementStore, PriorStore, Re
                            pack_relative, unpack_features, unpack_relative)
 from .options import FilterConfig, Recovery, ZtForm
 from .recovery import SchurFactor, factorize
+from .relinearisation import OnlineRelinearisation
 from .statedict import check_index, sub, take, take_float, take_ids, take_int
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout, pose_tangent_covariance, read_features, read_pose, read_poses  # noqa: F401
 
@@ -79,6 +80,10 @@ class InformationFilter:
             self.info = TrackedInformationStore()
             self.info.listeners.append(self.incremental)
         # -- end incremental recovery hook --
+        self.online: OnlineRelinearisation | None = None  # eifslam.estimation.relinearisation
+        if self.incremental is not None and self.config.relinearise_threshold is not None:
+            self.online = OnlineRelinearisation(self.config.relinearise_threshold, self.config.relinearise_budget)
+            self.info.listeners.append(self.online)
 
     # -- pickling -----------------------------------------------------------------------
     def __getstate__(self) -> dict:
@@ -301,8 +306,11 @@ class InformationFilter:
     # -- fusion (paper eq. 8) -----------------------------------------------------------
     def _fuse(self, lin: Linearised) -> None:
         """``I += J^T W J``, ``i += J^T W (innov + J x)`` for a linearised batch."""
-        Lam, eta = lin.information(self.x)
-        self.info.add(lin.idx, Lam, eta)
+        self.add_information(lin.idx, *lin.information(self.x))
+
+    def add_information(self, idx, Lam: Array, eta: Array) -> None:
+        """Add blocks ``Lam (N, k, k)`` to ``I`` and ``eta (N, k)`` to ``i`` at ``idx (N, k)``."""
+        self.info.add(idx, Lam, eta)
         self._factor = None
 
     def linearise_features(self, obs: FeatureObservations, gate: bool = True):
@@ -331,6 +339,8 @@ class InformationFilter:
         self._fuse(Linearised(idx, J, W, innov))
         if store and len(obs):
             self.store.features.append(obs)
+            if self.online is not None:
+                self.online.record_features(obs, idx, J, W, innov, self.x)
         return obs
 
     def linearise_relative(self, rps: list[RelativePose]):
@@ -347,9 +357,12 @@ class InformationFilter:
         """Fuse ``ZR`` and ``ZT`` of each relative pose jointly (5x5 covariance)."""
         if not rps:
             return
-        self._fuse(Linearised(*self.linearise_relative(rps)))
+        lin = Linearised(*self.linearise_relative(rps))
+        self._fuse(lin)
         if store:
             self.store.relative.extend(rps)
+            if self.online is not None:
+                self.online.record_relative(rps, lin.idx, lin.J, lin.W, lin.innov, self.x)
 
     # -- recovery (paper eq. 9) -------------------------------------------------------
     def information_matrix(self) -> sp.csc_matrix:
@@ -418,6 +431,8 @@ class InformationFilter:
         other states keep their last estimate) or :meth:`recover` (``"full"``)."""
         if self.incremental is None:
             return self.recover()
+        if self.online is not None:  # relinearise the window's measurements that moved
+            self.online.step(self)
         try:
             self.incremental.step(self.layout, self.info, self._x[: self.dim])
         except EstimatorError:

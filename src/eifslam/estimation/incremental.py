@@ -307,6 +307,13 @@ class IncrementalRecovery(ReactivatingWindow):
         self._marginalise(s)
         st.window_poses, st.window_features = len(self.pidx) // POSE_DIM, len(self.fidx) // FEATURE_DIM
 
+    def active_mask(self, idx: IntArray) -> NDArray[np.bool_]:
+        """Whether state entries ``idx`` (any shape) are in the window (entries added to
+        the layout since the last step count as active: they join it at the next)."""
+        idx = np.asarray(idx, np.int64)
+        inside = idx < len(self._pos)
+        return ~inside | (self._pos[np.where(inside, idx, 0)] >= 0)
+
     def rebuild_flops(self) -> float:
         """The cost model of a rebuild (see ``full_solve_flops_per_entry``)."""
         return max(self.min_rebuild_flops, self.full_solve_flops_per_entry * self._map.n)

@@ -85,6 +85,15 @@ class FilterConfig:
         its initial guess, so that a state whose measurements were all rejected (gate,
         depth) never makes ``I`` singular. Its information, ``1e-6`` by default, is
         negligible next to any measurement's; it touches diagonal blocks only.
+    relinearise_threshold : float or None
+        Online relinearisation (incremental recovery only,
+        :mod:`eifslam.estimation.relinearisation`): before each recovery, a stored ``Zm``
+        or ``ZR``/``ZT`` whose states are all in the active window is relinearised at
+        the current estimate when its linearisation error exceeds this many standard
+        deviations of the measurement. ``None``: measurements stay linearised where
+        they were fused.
+    relinearise_budget : int
+        At most this many measurements relinearised per frame (largest error first).
     """
 
     prior_sigma: float = 1e-6
@@ -95,6 +104,8 @@ class FilterConfig:
     gate_chi2: float | None = None
     min_depth: float = 1e-6
     weak_prior_sigma: float = 1e3
+    relinearise_threshold: float | None = None
+    relinearise_budget: int = 500
 
     def __post_init__(self) -> None:
         for key in ("prior_sigma", "scale_prior_sigma", "quat_norm_sigma", "min_depth", "weak_prior_sigma"):
@@ -106,6 +117,12 @@ class FilterConfig:
             raise ConfigError("filter.zt_paper_max_angle_deg must lie in (0, 90)")
         if self.gate_chi2 is not None and not self.gate_chi2 > 0:
             raise ConfigError("filter.gate_chi2 must be positive or None")
+        t = self.relinearise_threshold
+        if t is not None and not (isinstance(t, (int, float)) and np.isfinite(t) and t > 0):
+            raise ConfigError(f"filter.relinearise_threshold must be a positive number or None, got {t!r}")
+        b = self.relinearise_budget
+        if not (isinstance(b, (int, np.integer)) and not isinstance(b, bool) and b >= 1):
+            raise ConfigError(f"filter.relinearise_budget must be an integer >= 1, got {b!r}")
 
 
 __all__ = ["FilterConfig", "Recovery", "ZtForm"]
