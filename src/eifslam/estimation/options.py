@@ -91,9 +91,10 @@ class FilterConfig:
         or ``ZR``/``ZT`` whose states are all in the active window is relinearised at
         the current estimate when its linearisation error exceeds this many standard
         deviations of the measurement. ``None``: measurements stay linearised where
-        they were fused.
+        they were fused. Default 0.1, by measurement on the corridor (``docs/backend.md``).
     relinearise_budget : int
-        At most this many measurements relinearised per frame (largest error first).
+        At most this many measurements relinearised per frame (largest error first;
+        at most 8 times as many evaluated). Default 50.
     """
 
     prior_sigma: float = 1e-6
@@ -104,8 +105,8 @@ class FilterConfig:
     gate_chi2: float | None = None
     min_depth: float = 1e-6
     weak_prior_sigma: float = 1e3
-    relinearise_threshold: float | None = None
-    relinearise_budget: int = 500
+    relinearise_threshold: float | None = 0.1
+    relinearise_budget: int = 50
 
     def __post_init__(self) -> None:
         for key in ("prior_sigma", "scale_prior_sigma", "quat_norm_sigma", "min_depth", "weak_prior_sigma"):

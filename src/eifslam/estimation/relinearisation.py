@@ -15,7 +15,11 @@ Which measurements: those whose *linearisation error* at the current estimate ``
 exceeds ``threshold`` standard deviations (``sqrt(e^T W e)``, the whitened distance
 between the measurement's prediction and its linearised prediction): a threshold on
 what the linearisation costs the measurement's residual, in its own units, rather than
-a fixed distance in metres. At most ``budget`` per frame, largest error first.
+a fixed distance in metres. At most ``budget`` per frame, largest error first. ``e`` is
+second order in ``x - x0``; it is evaluated only where the first-order change
+``J0 (x - x0)`` (whitened, from the stored Jacobian, no model evaluation) exceeds the
+threshold, largest first and at most ``EVALUATIONS_PER_BUDGET * budget`` per frame,
+which bounds the per-frame cost whatever the map size.
 
 Only measurements whose states are all in the incremental recovery's active window are
 candidates (``live``); once one of their states is marginalised their linearisation is
@@ -34,6 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import ConfigError
+from ..geometry import models
 from .measurements import FeatureObservations, RelativePose
 
 if TYPE_CHECKING:  # the filter owns this object; no import at run time
@@ -41,6 +46,9 @@ if TYPE_CHECKING:  # the filter owns this object; no import at run time
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+EVALUATIONS_PER_BUDGET = 8
+"""At most this many times ``budget`` measurements are evaluated per frame and kind."""
 
 
 @dataclass
@@ -50,7 +58,8 @@ class RelinearisationStats:
     Attributes
     ----------
     steps : frames processed.
-    evaluated : measurements whose linearisation error was evaluated, summed over frames.
+    evaluated : measurements whose linearisation error was evaluated (their first-order
+        change exceeded the threshold), summed over frames.
     relinearised : measurements relinearised, summed over frames.
     over_budget : measurements above the threshold left for a later frame (budget).
     """
@@ -163,7 +172,7 @@ class OnlineRelinearisation:
             return 0
         x = filt.x
         parts = []
-        for name, lin in (("features", filt.linearise_features), ("relative", filt.linearise_relative)):
+        for name in ("features", "relative"):
             live = getattr(self, name)
             if live is None or len(live) == 0:
                 continue
@@ -171,35 +180,53 @@ class OnlineRelinearisation:
             setattr(self, name, live)
             if len(live) == 0:
                 continue
-            if name == "features":
-                ok, _, J, _, innov, _ = lin(live.meas, gate=False)
+            # the linearisation error is second order in the change of the states, so it is
+            # below the first-order change J0 dx (whitened) unless the model curves by more
+            # than the change itself: only the measurements whose first-order change exceeds
+            # the threshold are evaluated
+            dx = x[live.idx] - live.x0
+            d = np.einsum("nmk,nk->nm", live.J, dx)
+            f2 = np.einsum("ni,nij,nj->n", d, live.W, d)
+            cand = np.flatnonzero(f2 > self.threshold**2)
+            cap = EVALUATIONS_PER_BUDGET * self.budget
+            if len(cand) > cap:  # the largest first-order changes first; the rest wait
+                cand = cand[np.argpartition(-f2[cand], cap)[:cap]]
+            self.stats.evaluated += len(cand)
+            if len(cand) == 0:
+                continue
+            i = live.idx[cand]
+            if name == "features":  # factors.features on the stored indices (no layout look-ups)
+                c = filt.camera
+                h, Jp, Jf, depth = models.feature_model(x[i[:, :3]], x[i[:, 3:7]], x[i[:, 7:]], c.fx, c.fy, c.cx, c.cy)
+                innov, J = live.meas.uv[cand] - h, np.concatenate([Jp, Jf], 2)
+                ok = depth > filt.config.min_depth
             else:
-                _, J, _, innov = lin(live.meas)
-                ok = np.ones(len(live), bool)
-            e = live.innov - np.einsum("nmk,nk->nm", live.J, x[live.idx] - live.x0) - innov
-            err2 = np.einsum("ni,nij,nj->n", e, live.W, e)
+                _, J, _, innov = filt.linearise_relative([live.meas[j] for j in cand])
+                ok = np.ones(len(cand), bool)
+            e = live.innov[cand] - d[cand] - innov
+            err2 = np.einsum("ni,nij,nj->n", e, live.W[cand], e)
             ok &= np.isfinite(err2) & np.all(np.isfinite(J), axis=(1, 2)) & np.all(np.isfinite(innov), axis=1)
-            parts.append((name, live, np.where(ok, err2, -1.0), J, innov))
-            self.stats.evaluated += len(live)
-        over = [(name, np.flatnonzero(e2 > self.threshold**2), e2) for name, _, e2, _, _ in parts]
-        n_over = sum(len(o) for _, o, _ in over)
+            parts.append((name, live, cand, np.where(ok, err2, -1.0), J, innov))
+        over = [np.flatnonzero(e2 > self.threshold**2) for _, _, _, e2, _, _ in parts]
+        n_over = sum(len(o) for o in over)
         if n_over == 0:
             return 0
         cut = -np.inf
         if n_over > self.budget:
-            cut = np.sort(np.concatenate([e2[o] for _, o, e2 in over]))[-self.budget]
+            cut = np.sort(np.concatenate([p[3][o] for p, o in zip(parts, over)]))[-self.budget]
             self.stats.over_budget += n_over - self.budget
         done = 0
-        for (name, live, e2, J, innov), (_, o, _) in zip(parts, over):
-            sel = o[e2[o] >= cut][: self.budget - done]
-            if not len(sel):
+        for (name, live, cand, e2, J, innov), o in zip(parts, over):
+            o = o[e2[o] >= cut][: self.budget - done]
+            if not len(o):
                 continue
+            sel = cand[o]
             idx = live.idx[sel]
             Lam0, eta0 = contribution(idx, live.J[sel], live.W[sel], live.innov[sel], live.x0[sel])
             x1 = x[idx]
-            Lam1, eta1 = contribution(idx, J[sel], live.W[sel], innov[sel], x1)
+            Lam1, eta1 = contribution(idx, J[o], live.W[sel], innov[o], x1)
             filt.add_information(idx, Lam1 - Lam0, eta1 - eta0)
-            live.J[sel], live.innov[sel], live.x0[sel] = J[sel], innov[sel], x1
+            live.J[sel], live.innov[sel], live.x0[sel] = J[o], innov[o], x1
             done += len(sel)
         self.stats.relinearised += done
         return done
