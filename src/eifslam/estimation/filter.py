@@ -133,6 +133,7 @@ class InformationFilter:
             "zm_batches": np.array([len(b) for b in batches], np.int64),
             "relative": pack_relative(self.store.relative),
             "incremental": None if self.incremental is None else self.incremental.state_dict(),
+            "online": None if self.online is None else self.online.state_dict(),
         }
 
     def load_state_dict(self, d) -> None:
@@ -199,6 +200,8 @@ class InformationFilter:
             raise SessionError("entry 'incremental' does not match the configured recovery")
         if self.incremental is not None:
             self.incremental.load_state_dict(inc, n)
+        if self.online is not None and d.get("online") is not None:  # after info.set, which clears it
+            self.online.load_state_dict(sub(d, "online"), n)
         self._factor = None
 
     def _check_states(self, kind: StateKind, ids, what: str) -> None:

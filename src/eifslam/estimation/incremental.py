@@ -307,12 +307,14 @@ class IncrementalRecovery(ReactivatingWindow):
         self._marginalise(s)
         st.window_poses, st.window_features = len(self.pidx) // POSE_DIM, len(self.fidx) // FEATURE_DIM
 
-    def active_mask(self, idx: IntArray) -> NDArray[np.bool_]:
-        """Whether state entries ``idx`` (any shape) are in the window (entries added to
-        the layout since the last step count as active: they join it at the next)."""
-        idx = np.asarray(idx, np.int64)
-        inside = idx < len(self._pos)
-        return ~inside | (self._pos[np.where(inside, idx, 0)] >= 0)
+    def measured_within(self, starts: IntArray, steps: int) -> NDArray[np.bool_]:
+        """Whether the states whose blocks start at entries ``starts`` (any shape) were
+        measured within the last ``steps`` steps, as of the last step (states added since
+        count as measured now)."""
+        starts = np.asarray(starts, np.int64)
+        known = starts < len(self._last)
+        last = self._last[np.where(known, starts, 0)] if len(self._last) else np.zeros(starts.shape, np.int64)
+        return ~known | (self.stats.steps - last < steps)
 
     def rebuild_flops(self) -> float:
         """The cost model of a rebuild (see ``full_solve_flops_per_entry``)."""

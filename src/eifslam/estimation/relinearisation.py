@@ -22,24 +22,28 @@ threshold, largest first and at most ``EVALUATIONS_PER_BUDGET * budget`` per fra
 which bounds the per-frame cost whatever the map size.
 
 Only measurements whose states are all in the incremental recovery's active window are
-candidates (``live``); once one of their states is marginalised their linearisation is
-final (the elimination used it). So the work per frame is bounded by the window, not
+candidates (``live``: a ``Zm`` while its feature was measured within the feature window,
+a ``ZR``/``ZT`` while both poses were measured within the pose window); once one of their
+states is marginalised their linearisation is final (the elimination used it). So the work per frame is bounded by the window, not
 the map. ``Zm`` and ``ZR``/``ZT`` are relinearised; priors and the quaternion-norm
 pseudo-measurements are not. Measurements fused before ``I`` was replaced wholesale
-(smoothing, rescaling, a loaded session) are no longer tracked.
+(smoothing, rescaling) are no longer tracked; sessions keep the candidates.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import ConfigError
 from ..geometry import models
-from .measurements import FeatureObservations, RelativePose
+from .measurements import (FeatureObservations, RelativePose, pack_features, pack_relative, unpack_features,
+                           unpack_relative)
+from .statedict import check_index, sub, take, take_int
 
 if TYPE_CHECKING:  # the filter owns this object; no import at run time
     from .filter import InformationFilter
@@ -162,13 +166,60 @@ class OnlineRelinearisation:
         """``I`` was replaced wholesale: the recorded linearisations are not in it any more."""
         self.features = self.relative = None
 
+    @staticmethod
+    def _in_window(inc, name: str, idx: IntArray) -> NDArray[np.bool_]:
+        """Which measurements ``idx (N, k)`` are still candidates: a ``Zm`` while its feature
+        was measured within ``feature_window`` steps (the window keeps such a feature, and
+        every pose coupled to it), a ``ZR``/``ZT`` while both poses were measured within
+        ``pose_window`` steps. Decided from the steps of the last measurements only (not the
+        window's current make-up, which a rebuild changes), so a loaded session prunes as
+        the uninterrupted run does."""
+        if name == "features":
+            return inc.measured_within(idx[:, 7], inc.feature_window)
+        return inc.measured_within(idx[:, 0], inc.pose_window) & inc.measured_within(idx[:, 7], inc.pose_window)
+
+    # -- sessions -----------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """The candidates and their linearisations, and the counters (arrays and JSON values)."""
+        out: dict = {"stats": dataclasses.asdict(self.stats)}
+        for name, pack in (("features", pack_features), ("relative", pack_relative)):
+            live = getattr(self, name)
+            out[name] = None if live is None or len(live) == 0 else dict(
+                meas=pack(live.meas), **{k: getattr(live, k).copy() for k in ("idx", "J", "W", "innov", "x0")})
+        return out
+
+    def load_state_dict(self, d: Mapping[str, Any], dim: int) -> None:
+        """Restore :meth:`state_dict` into a filter of ``dim`` entries.
+
+        Raises
+        ------
+        SessionError
+            On a malformed entry.
+        """
+        st = sub(d, "stats")
+        self.stats = RelinearisationStats(**{f.name: take_int(st, f.name, 0)
+                                             for f in dataclasses.fields(RelinearisationStats)})
+        for name, unpack, k, m in (("features", unpack_features, 10, 2), ("relative", unpack_relative, 14, 5)):
+            if d.get(name) is None:
+                setattr(self, name, None)
+                continue
+            e = sub(d, name)
+            meas = unpack(sub(e, "meas"))
+            n = len(meas)
+            idx = take(e, "idx", np.int64, (n, k))
+            check_index(idx, dim, "array 'idx'")
+            setattr(self, name, LiveBatch(meas, idx.copy(), take(e, "J", np.float64, (n, m, k)).copy(),
+                                          take(e, "W", np.float64, (n, m, m)).copy(),
+                                          take(e, "innov", np.float64, (n, m)).copy(),
+                                          take(e, "x0", np.float64, (n, k)).copy()))
+
     # -- the step -----------------------------------------------------------------------------
     def step(self, filt: "InformationFilter") -> int:
         """Relinearise the live measurements over the threshold (at most ``budget``) at
         ``filt.x``; return how many. Call before the frame's recovery."""
         inc = filt.incremental
         self.stats.steps += 1
-        if inc is None or not inc.valid:
+        if inc is None:
             return 0
         x = filt.x
         parts = []
@@ -176,7 +227,7 @@ class OnlineRelinearisation:
             live = getattr(self, name)
             if live is None or len(live) == 0:
                 continue
-            live = live.subset(inc.active_mask(live.idx).all(axis=1))
+            live = live.subset(self._in_window(inc, name, live.idx))
             setattr(self, name, live)
             if len(live) == 0:
                 continue
