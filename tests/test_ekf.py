@@ -15,7 +15,8 @@ def run(sc, seed: int, ekf: bool, **kw):
     """The system over every frame of ``sc`` with the EIF (its default back end) or the
     dense EKF, on the same simulated measurements; the filter at its complete estimate."""
     fe = SyntheticFrontEnd(sc, seed, map_fraction=1.0, **kw)
-    config = fe.slam_config()
+    # linearised alike: the EKF never relinearises, so the EIF's online relinearisation is off
+    config = fe.slam_config().replace(filter={"relinearise_threshold": None})
     slam = Slam(sc.camera, config, frontend=fe, backend=DenseEKF(sc.camera, config.filter) if ekf else None)
     for k in range(len(sc.positions)):
         slam.track(k)
