@@ -311,9 +311,14 @@ class InformationFilter:
         """``I += J^T W J``, ``i += J^T W (innov + J x)`` for a linearised batch."""
         self.add_information(lin.idx, *lin.information(self.x))
 
-    def add_information(self, idx, Lam: Array, eta: Array) -> None:
-        """Add blocks ``Lam (N, k, k)`` to ``I`` and ``eta (N, k)`` to ``i`` at ``idx (N, k)``."""
-        self.info.add(idx, Lam, eta)
+    def add_information(self, idx, Lam: Array, eta: Array, measurement: bool = True) -> None:
+        """Add blocks ``Lam (N, k, k)`` to ``I`` and ``eta (N, k)`` to ``i`` at ``idx (N, k)``;
+        ``measurement=False``: a correction (relinearisation), the states age as untouched."""
+        if measurement or self.incremental is None:
+            self.info.add(idx, Lam, eta)
+        else:
+            with self.incremental.not_measuring():
+                self.info.add(idx, Lam, eta)
         self._factor = None
 
     def linearise_features(self, obs: FeatureObservations, gate: bool = True):

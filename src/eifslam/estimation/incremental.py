@@ -48,8 +48,9 @@ rescaling).
 from __future__ import annotations
 
 import dataclasses
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Protocol
+from typing import Any, Iterator, Mapping, Protocol
 
 import numpy as np
 import scipy.sparse as sp
@@ -197,7 +198,8 @@ class IncrementalRecovery(ReactivatingWindow):
         self._last = np.zeros(0, np.int64)  # step of the last measurement, at block starts
         self._pos = np.zeros(0, np.int64)  # position in the window, -1 once marginalised
         self._owner = np.zeros(0, np.int64)  # slot in _conds of a marginalised entry, else -1
-        self._pending: list[tuple[IntArray, Array, Array]] = []
+        self._pending: list[tuple[IntArray, Array, Array, bool]] = []  # (idx, Lam, eta, a measurement?)
+        self._measuring = True
         self._valid = False
         self._conds: list[Conditional | None] = []  # elimination order; None once undone
         self._reset_window()
@@ -246,7 +248,18 @@ class IncrementalRecovery(ReactivatingWindow):
     def on_add(self, idx: IntArray, Lam: Array, eta: Array) -> None:
         """Record a fusion (processed at the next :meth:`step`)."""
         if self._valid:
-            self._pending.append((idx, Lam, eta))
+            self._pending.append((idx, Lam, eta, self._measuring))
+
+    @contextmanager
+    def not_measuring(self) -> Iterator[None]:
+        """Fusions inside this block are corrections (online relinearisation), not
+        measurements: the states they touch do not count as measured again, so they leave
+        the window when their last measurement is old enough."""
+        self._measuring = False
+        try:
+            yield
+        finally:
+            self._measuring = True
 
     def on_invalidate(self) -> None:
         """``I`` was replaced wholesale: rebuild at the next step."""
@@ -282,7 +295,9 @@ class IncrementalRecovery(ReactivatingWindow):
         self._owner = np.concatenate([self._owner, np.full(n - len(self._owner), -1, np.int64)])
         pending, self._pending = self._pending, []
         touched = np.concatenate([p[0].ravel() for p in pending]) if pending else np.zeros(0, np.int64)
-        self._last[self._map.start[touched]] = s
+        measured = [p[0].ravel() for p in pending if p[3]]
+        if measured:
+            self._last[self._map.start[np.concatenate(measured)]] = s
         restart = False
         if not self._valid:
             self._rebuild(info, s)
@@ -297,7 +312,7 @@ class IncrementalRecovery(ReactivatingWindow):
             else:
                 if len(marg):
                     self._reactivate(marg, plan)
-                for idx, Lam, eta in pending:
+                for idx, Lam, eta, _ in pending:
                     self._route(idx, Lam, eta)
         self._solve()
         x[self.pidx], x[self.fidx] = self.xp, self.xf

@@ -91,10 +91,12 @@ class FilterConfig:
         or ``ZR``/``ZT`` whose states are all in the active window is relinearised at
         the current estimate when its linearisation error exceeds this many standard
         deviations of the measurement. ``None``: measurements stay linearised where
-        they were fused. Default 0.1, by measurement on the corridor (``docs/backend.md``).
+        they were fused (the default: on a slow walk with small parallax, 0.1 made the
+        filter diverge; on the corridor 0.1 brings the estimate to within 0.05% of the
+        batch optimum's cost; ``docs/backend.md``).
     relinearise_budget : int
         At most this many measurements relinearised per frame (largest error first;
-        at most 8 times as many evaluated). Default 50.
+        at most 8 times as many evaluated).
     """
 
     prior_sigma: float = 1e-6
@@ -105,7 +107,7 @@ class FilterConfig:
     gate_chi2: float | None = None
     min_depth: float = 1e-6
     weak_prior_sigma: float = 1e3
-    relinearise_threshold: float | None = 0.1
+    relinearise_threshold: float | None = None
     relinearise_budget: int = 50
 
     def __post_init__(self) -> None:

@@ -276,7 +276,7 @@ class OnlineRelinearisation:
             Lam0, eta0 = contribution(idx, live.J[sel], live.W[sel], live.innov[sel], live.x0[sel])
             x1 = x[idx]
             Lam1, eta1 = contribution(idx, J[o], live.W[sel], innov[o], x1)
-            filt.add_information(idx, Lam1 - Lam0, eta1 - eta0)
+            filt.add_information(idx, Lam1 - Lam0, eta1 - eta0, measurement=False)
             live.J[sel], live.innov[sel], live.x0[sel] = J[o], innov[o], x1
             done += len(sel)
         self.stats.relinearised += done
