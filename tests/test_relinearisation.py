@@ -110,8 +110,10 @@ def runs():
 
 
 def test_window_stays_exact_with_relinearisation(runs):
-    on, _, diffs = runs
+    on, off, diffs = runs
     st = on.online.stats
+    # corrections are not measurements: the states still leave the window on time
+    assert on.incremental.stats.max_window_poses <= off.incremental.stats.max_window_poses + 2
     assert st.relinearised > 50 and st.steps >= 35  # one per recovery (the first frames wait for a baseline)
     assert max(diffs) < 1e-8
     assert on.incremental.stats.fallbacks == 0
