@@ -17,7 +17,8 @@ def run(sc, seed: int, ekf: bool, **kw):
     The EKF linearises at its current mean, so the EIF runs without first-estimates
     Jacobians here (linearised alike)."""
     fe = SyntheticFrontEnd(sc, seed, map_fraction=1.0, **kw)
-    config = fe.slam_config(filter={"first_estimate_jacobians": False})
+    # linearised alike: the EKF never relinearises, so the EIF's online relinearisation is off
+    config = fe.slam_config(filter={"first_estimate_jacobians": False, "relinearise_threshold": None})
     slam = Slam(sc.camera, config, frontend=fe, backend=DenseEKF(sc.camera, config.filter) if ekf else None)
     for k in range(len(sc.positions)):
         slam.track(k)

@@ -9,6 +9,7 @@ from eifslam.errors import ConfigError
 from eifslam.estimation.filter import InformationFilter
 from eifslam.estimation.incremental import IncrementalRecovery
 from eifslam.estimation.measurements import RelativePose
+from eifslam.estimation.options import FilterConfig
 from eifslam.estimation.recovery import factorize
 from eifslam.estimation.smoothing import smooth
 from eifslam.estimation.measurements import FeatureObservations
@@ -94,7 +95,9 @@ def test_complete_estimate_equals_full_and_dense_solve(incremental_run):
 def test_incremental_run_equals_full_run():
     sc, m = scene(25, 4)
     a = run_slam(sc, m, InformationFilter(sc.camera, recovery="full"))
-    b = run_slam(sc, m, InformationFilter(sc.camera, recovery="incremental", window=1))
+    # the same linearisations: online relinearisation exists with incremental recovery only
+    cfg = FilterConfig(relinearise_threshold=None)
+    b = run_slam(sc, m, InformationFilter(sc.camera, cfg, recovery="incremental", window=1))
     assert b.incremental.stats.marginalised_poses > 0
     assert a.dim == b.dim
     assert rel_err(b.x, a.x) < 1e-8
@@ -250,3 +253,55 @@ def test_indefinite_window_is_solved_without_a_rebuild(monkeypatch):
     assert st.indefinite_solves > 0 and st.fallbacks == 0 and st.rebuilds == 1
     assert max(diffs) < 1e-8
     assert rel_err(f.x, full_solve(f)) < 1e-8
+
+
+def test_loop_closure_too_costly_to_reactivate_restarts_the_window_from_one_factorisation():
+    """A loop closure whose re-activation would cost more than a full solve (forced here
+    by the cost model) rebuilds the window from one sparse factorisation: the whole
+    estimate equals the full and the dense solve at that frame, and the frames after it
+    run on a small window again, exact, without another fallback."""
+    sc, m = scene(40, 3)
+    f = InformationFilter(sc.camera, recovery="incremental", window=1)
+    inc = f.incremental
+    diffs, before, windows, at_loop = [], [], [], {}
+
+    def check(k, filt):
+        if k == 25:
+            st = inc.stats
+            react, rebuilds = st.reactivations, st.rebuilds
+            inc.full_solve_flops_per_entry, inc.min_rebuild_flops = 0.0, 0.0  # re-activating costs too much
+            q, t = true_relative(sc, 1, k)
+            filt.fuse_relative([RelativePose(1, k, q, t, m.model.rel_cov)])
+            filt.recover_active()
+            assert st.fallbacks == 1 and st.rebuilds == rebuilds + 1 and st.reactivations == react
+            I = filt.information_matrix().toarray()
+            x_dense = np.linalg.solve(I, filt.information_vector())
+            at_loop.update(full=rel_err(filt.x, full_solve(filt)), dense=rel_err(filt.x, x_dense),
+                           window=len(inc.active_indices), dim=filt.dim)
+            inc.full_solve_flops_per_entry, inc.min_rebuild_flops = 2e4, 1e9
+        (windows if k > 25 else before).append(len(inc.active_indices))
+        a = inc.active_indices
+        diffs.append(rel_err(filt.x[a], full_solve(filt)[a]))
+
+    run_slam(sc, m, f, on_frame=check)
+    assert at_loop["full"] < 1e-8 and at_loop["dense"] < 1e-8  # every state, not only the window
+    assert at_loop["window"] < 0.5 * at_loop["dim"]
+    assert max(diffs) < 1e-8
+    assert inc.stats.fallbacks == 1  # the frames after the loop: no further rebuild
+    assert max(windows) < 0.5 * f.dim and max(windows) <= 1.5 * max(before)  # the window as it was
+    assert rel_err(f.x, np.linalg.solve(f.information_matrix().toarray(), f.information_vector())) < 1e-8
+
+
+def test_cheap_reactivation_is_preferred_and_costly_one_is_not():
+    """The cost model: re-activating a pose eliminated one step ago is cheaper than a
+    rebuild; bringing back the first pose of a long run is costlier when a full solve is
+    priced low."""
+    sc, m = scene(25, 4)
+    f = run_slam(sc, m, InformationFilter(sc.camera, recovery="incremental", window=1))
+    inc = f.incremental
+    offs = [f.layout.pose_offset(k) for k in f.layout.pose_ids]
+    marg = [o for o in offs if o not in set(inc.active_indices.tolist())]
+    near, far = inc.plan_reactivation(np.array([marg[-1]])), inc.plan_reactivation(np.array([marg[0]]))
+    assert 0 < inc.reactivation_flops(near) < inc.reactivation_flops(far)
+    assert len(far.poses) > len(near.poses)
+    assert inc.reactivation_flops(far) < inc.rebuild_flops()  # small state: floor of 1e9

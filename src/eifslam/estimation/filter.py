@@ -25,19 +25,19 @@ from ..geometry.camera import PinholeCamera
 from ..geometry.rotations import quat_normalize
 from . import factors
 from .factors import Linearised
+from .filter_session import FilterSessionMixin
 from .incremental import IncrementalRecovery, TrackedInformationStore
 from .information import InformationStore
-from .measurements import (FeatureObservations, MeasurementStore, PriorStore, RelativePose, pack_features,
-                           pack_relative, unpack_features, unpack_relative)
+from .measurements import FeatureObservations, MeasurementStore, PriorStore, RelativePose
 from .options import FilterConfig, Recovery, ZtForm
 from .recovery import SchurFactor, factorize
-from .statedict import check_index, sub, take, take_float, take_ids, take_int
+from .relinearisation import OnlineRelinearisation
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout, pose_tangent_covariance, read_features, read_pose, read_poses  # noqa: F401
 
 Array = NDArray[np.float64]
 
 
-class InformationFilter:
+class InformationFilter(FilterSessionMixin):
     """Exactly sparse EIF over camera poses and map features.
 
     Satisfies :class:`~eifslam.estimation.backend.Backend` (as does the dense EKF
@@ -80,6 +80,10 @@ class InformationFilter:
             self.info = TrackedInformationStore()
             self.info.listeners.append(self.incremental)
         # -- end incremental recovery hook --
+        self.online: OnlineRelinearisation | None = None  # eifslam.estimation.relinearisation
+        if self.incremental is not None and self.config.relinearise_threshold is not None:
+            self.online = OnlineRelinearisation(self.config.relinearise_threshold, self.config.relinearise_budget)
+            self.info.listeners.append(self.online)
 
     # -- pickling -----------------------------------------------------------------------
     def __getstate__(self) -> dict:
@@ -96,107 +100,6 @@ class InformationFilter:
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
-        self._factor = None
-
-    # -- sessions -----------------------------------------------------------------------
-    def state_dict(self) -> dict:
-        """What a session keeps, as arrays and JSON values (:mod:`.statedict`): the layout,
-        the complete estimate, ``I`` (CSC arrays) and ``i``, the priors, every stored
-        measurement and the incremental recovery's bookkeeping. The filter is not changed."""
-        order = self.layout.order
-        x = self.x.copy()
-        if self.incremental is not None and self.incremental.valid:
-            self.incremental.full_solution(x)
-        I = sp.csc_matrix(self.information_matrix(), copy=True)
-        I.sum_duplicates()
-        weak = {kind: [(i, v) for (kd, i), v in self.priors.weak.items() if kd == kind] for kind in StateKind}
-        batches = self.store.features
-        return {
-            "is_feature": np.array([k.kind == StateKind.FEATURE for k in order], bool),
-            "id": np.array([k.id for k in order], np.int64),
-            "x": x,
-            "x_first": self.first_estimates.copy(),
-            "I": {"data": I.data.astype(float), "indices": I.indices.astype(np.int64),
-                  "indptr": I.indptr.astype(np.int64)},
-            "i": self.information_vector(),
-            "prior_pose": {"ids": np.array(list(self.priors.pose), np.int64),
-                           "p": np.array([p for p, _ in self.priors.pose.values()], float).reshape(-1, 3),
-                           "q": np.array([q for _, q in self.priors.pose.values()], float).reshape(-1, 4)},
-            "scale": None if self.priors.scale is None else list(self.priors.scale),
-            **{f"weak_{kind.value}": {"ids": np.array([i for i, _ in weak[kind]], np.int64),
-                                      "x": np.array([v for _, v in weak[kind]], float).reshape(-1, n)}
-               for kind, n in ((StateKind.POSE, POSE_DIM), (StateKind.FEATURE, FEATURE_DIM))},
-            "zm": pack_features(self.store.all_features()),
-            "zm_batches": np.array([len(b) for b in batches], np.int64),
-            "relative": pack_relative(self.store.relative),
-            "incremental": None if self.incremental is None else self.incremental.state_dict(),
-        }
-
-    def load_state_dict(self, d) -> None:
-        """Restore :meth:`state_dict` into this (new, empty) filter. The incremental
-        recovery's window starts invalid and is rebuilt from ``I`` at the next step.
-
-        Raises
-        ------
-        SessionError
-            On a missing, malformed or inconsistent entry (nothing is trusted).
-        """
-        if self.layout.n_states:
-            raise SessionError("a session loads into a new filter only")
-        isf = take(d, "is_feature", bool, (None,))
-        ids = take_ids(d, "id", len(isf))
-        try:
-            for f, i in zip(isf.tolist(), ids.tolist()):
-                (self.layout.add_feature if f else self.layout.add_pose)(i)
-        except EstimatorError as exc:
-            raise SessionError(f"bad state layout: {exc}") from None
-        n = self.dim
-        self._grow()
-        Id = sub(d, "I")
-        indptr = take_ids(Id, "indptr", n + 1)
-        data = take(Id, "data", np.float64, (None,))
-        indices = take_ids(Id, "indices", len(data))
-        if indptr[0] != 0 or indptr[-1] != len(data) or np.any(np.diff(indptr) < 0):
-            raise SessionError("array 'indptr' is not a CSC column pointer")
-        check_index(indices, n, "array 'indices'")
-        self.info.set(sp.csc_matrix((data, indices, indptr), shape=(n, n)), take(d, "i", np.float64, (n,)))
-        self._x[:n] = take(d, "x", np.float64, (n,))
-        self._xfe[:n] = take(d, "x_first", np.float64, (n,)) if "x_first" in d else self._x[:n]
-        pp = sub(d, "prior_pose")
-        pids = take_ids(pp, "ids")
-        self._check_states(StateKind.POSE, pids, "prior_pose")
-        for fid, p, q in zip(pids.tolist(), take(pp, "p", np.float64, (len(pids), 3)),
-                             take(pp, "q", np.float64, (len(pids), 4))):
-            self.priors.pose[fid] = (p.copy(), q.copy())
-        sc = d.get("scale")
-        if sc is not None:
-            if not (isinstance(sc, list) and len(sc) == 3):
-                raise SessionError("entry 'scale' must be [frame_a, frame_b, distance]")
-            sd = dict(zip("abd", sc))
-            a, b, dist = take_int(sd, "a", 0), take_int(sd, "b", 0), take_float(sd, "d")
-            self._check_states(StateKind.POSE, np.array([a, b]), "scale")
-            self.priors.scale = (a, b, dist)
-        for kind, size in ((StateKind.POSE, POSE_DIM), (StateKind.FEATURE, FEATURE_DIM)):
-            w = sub(d, f"weak_{kind.value}")
-            wids = take_ids(w, "ids")
-            self._check_states(kind, wids, f"weak_{kind.value}")
-            for i, v in zip(wids.tolist(), take(w, "x", np.float64, (len(wids), size))):
-                self.priors.weak[(kind, i)] = v.copy()
-        obs = unpack_features(sub(d, "zm"))
-        self._check_states(StateKind.POSE, obs.pose, "zm")
-        self._check_states(StateKind.FEATURE, obs.feature, "zm")
-        sizes = take_ids(d, "zm_batches")
-        if int(sizes.sum()) != len(obs):
-            raise SessionError("array 'zm_batches' does not add up to the stored Zm")
-        bounds = np.cumsum(sizes)
-        self.store.features = [obs.subset(slice(a, b)) for a, b in zip(bounds - sizes, bounds)]
-        self.store.relative = unpack_relative(sub(d, "relative"))
-        self._check_states(StateKind.POSE, np.array([[r.i, r.j] for r in self.store.relative], np.int64), "relative")
-        inc = d.get("incremental")
-        if (inc is None) != (self.incremental is None):
-            raise SessionError("entry 'incremental' does not match the configured recovery")
-        if self.incremental is not None:
-            self.incremental.load_state_dict(inc, n)
         self._factor = None
 
     def _check_states(self, kind: StateKind, ids, what: str) -> None:
@@ -313,8 +216,16 @@ class InformationFilter:
     # -- fusion (paper eq. 8) -----------------------------------------------------------
     def _fuse(self, lin: Linearised) -> None:
         """``I += J^T W J``, ``i += J^T W (innov + J x)`` for a linearised batch."""
-        Lam, eta = lin.information(self.x)
-        self.info.add(lin.idx, Lam, eta)
+        self.add_information(lin.idx, *lin.information(self.x))
+
+    def add_information(self, idx, Lam: Array, eta: Array, measurement: bool = True) -> None:
+        """Add blocks ``Lam (N, k, k)`` to ``I`` and ``eta (N, k)`` to ``i`` at ``idx (N, k)``;
+        ``measurement=False``: a correction (relinearisation), the states age as untouched."""
+        if measurement or self.incremental is None:
+            self.info.add(idx, Lam, eta)
+        else:
+            with self.incremental.not_measuring():
+                self.info.add(idx, Lam, eta)
         self._factor = None
 
     def linearise_features(self, obs: FeatureObservations, gate: bool = True):
@@ -349,6 +260,8 @@ class InformationFilter:
         self._fuse(Linearised(idx, J, W, innov))
         if store and len(obs):
             self.store.features.append(obs)
+            if self.online is not None:
+                self.online.record_features(obs, idx, J, W, innov, self.x)
         return obs
 
     def linearise_relative(self, rps: list[RelativePose]):
@@ -369,9 +282,12 @@ class InformationFilter:
         """Fuse ``ZR`` and ``ZT`` of each relative pose jointly (5x5 covariance)."""
         if not rps:
             return
-        self._fuse(Linearised(*self.linearise_relative(rps)))
+        lin = Linearised(*self.linearise_relative(rps))
+        self._fuse(lin)
         if store:
             self.store.relative.extend(rps)
+            if self.online is not None:
+                self.online.record_relative(rps, lin.idx, lin.J, lin.W, lin.innov, self.x)
 
     # -- recovery (paper eq. 9) -------------------------------------------------------
     def information_matrix(self) -> sp.csc_matrix:
@@ -442,6 +358,8 @@ class InformationFilter:
         other states keep their last estimate) or :meth:`recover` (``"full"``)."""
         if self.incremental is None:
             return self.recover()
+        if self.online is not None:  # relinearise the window's measurements that moved
+            self.online.step(self)
         try:
             self.incremental.step(self.layout, self.info, self._x[: self.dim])
         except EstimatorError:

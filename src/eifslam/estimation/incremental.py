@@ -30,18 +30,27 @@ relocalisation, a feature seen again after a gap, a frame localised late, earlie
 observations of a newly triangulated feature), the state is re-activated: its
 conditional is undone (``C^T A^-1 C`` added back to the window, its rows re-inserted),
 after the conditionals of the later-eliminated poses it was conditioned on, as iSAM2
-re-eliminates the path to the root of its Bayes tree; no access to the full ``I``. Only
-a state inside a rebuild's sparse factorisation cannot be re-activated: then the window
-is rebuilt from the full sparse ``I`` (:func:`eifslam.recovery.factorize` on the
-eliminated part) and the event is counted as a fallback. Rebuilding also follows
-:meth:`InformationStore.reset` / ``set`` (smoothing, rescaling).
+re-eliminates the path to the root of its Bayes tree (:mod:`.reactivation`); no access
+to the full ``I``. That path grows with the time since the state left: a loop closure
+after a long exploration would bring back hundreds of poses into the dense window
+(minutes at 100,000 entries). So the work is estimated first
+(:meth:`~eifslam.estimation.reactivation.ReactivatingWindow.reactivation_flops`) and,
+when it exceeds the cost of one full sparse solve (:meth:`IncrementalRecovery.rebuild_flops`),
+or when a state lies inside a rebuild's sparse factorisation (which cannot be undone),
+the window is rebuilt from the full sparse ``I`` instead (counted as a fallback): one
+sparse factorisation of the eliminated part (:func:`eifslam.recovery.factorize`), a
+window over the recent states and the touched ones, and every state back-substituted,
+so ``x`` is the full solution at that frame; the frames after it are constant time
+again. Rebuilding also follows :meth:`InformationStore.reset` / ``set`` (smoothing,
+rescaling).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Protocol
+from typing import Any, Iterator, Mapping, Protocol
 
 import numpy as np
 import scipy.sparse as sp
@@ -52,7 +61,8 @@ from .information import InformationStore
 from .recovery import factorize
 from .statedict import sub, take_ids, take_int
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout
-from .window import ActiveWindow, RecoveryStats, Conditional
+from .reactivation import ReactivatingWindow
+from .window import Conditional, RecoveryStats
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -137,7 +147,7 @@ class EntryMap:
 
 
 @dataclass
-class IncrementalRecovery(ActiveWindow):
+class IncrementalRecovery(ReactivatingWindow):
     """Exact recovery of ``I x = i`` restricted to an active window, updated per step.
 
     The driver: it follows the layout and the fusions, decides what to rebuild,
@@ -151,22 +161,45 @@ class IncrementalRecovery(ActiveWindow):
     pose_window : int
         A pose is marginalised after this many steps without a measurement, once no
         active feature is coupled to it (>= 1).
+    full_solve_flops_per_entry : float
+        Cost model of a rebuild (about one full sparse solve), in dense floating-point
+        operations per state entry: a measurement of marginalised states re-activates
+        them when :meth:`reactivation_flops` is at most ``max(min_rebuild_flops, this * n)``, and
+        rebuilds the window from one sparse factorisation otherwise (a loop closure
+        after a long exploration). 2e4 makes a rebuild worth ~2e9 dense operations at
+        100,000 entries, where it takes ~2 s (``docs/backend.md``).
+    min_rebuild_flops : float
+        Floor of that cost model (small states: re-activation is cheap either way).
+    rebuild_horizon : int
+        A rebuild keeps in the window every state measured within this many steps (at
+        least the windows), so that they are marginalised again one by one into
+        conditionals that can be undone: a feature seen again after a short gap then
+        re-activates instead of rebuilding once more (a sparse factorisation cannot be
+        undone).
     """
 
     feature_window: int = 2
     pose_window: int = 2
     stats: RecoveryStats = field(default_factory=RecoveryStats)
+    full_solve_flops_per_entry: float = 2e4
+    min_rebuild_flops: float = 1e9
+    rebuild_horizon: int = 10
 
     def __post_init__(self) -> None:
-        for key in ("feature_window", "pose_window"):
+        for key in ("feature_window", "pose_window", "rebuild_horizon"):
             v = getattr(self, key)
             if not (isinstance(v, (int, np.integer)) and v >= 1):
                 raise ConfigError(f"{key} must be an integer >= 1, got {v!r}")
+        for key in ("full_solve_flops_per_entry", "min_rebuild_flops"):
+            v = getattr(self, key)
+            if not (np.isfinite(v) and v >= 0):
+                raise ConfigError(f"{key} must be a non-negative number, got {v!r}")
         self._map = EntryMap()
         self._last = np.zeros(0, np.int64)  # step of the last measurement, at block starts
         self._pos = np.zeros(0, np.int64)  # position in the window, -1 once marginalised
         self._owner = np.zeros(0, np.int64)  # slot in _conds of a marginalised entry, else -1
-        self._pending: list[tuple[IntArray, Array, Array]] = []
+        self._pending: list[tuple[IntArray, Array, Array, bool]] = []  # (idx, Lam, eta, a measurement?)
+        self._measuring = True
         self._valid = False
         self._conds: list[Conditional | None] = []  # elimination order; None once undone
         self._reset_window()
@@ -215,7 +248,18 @@ class IncrementalRecovery(ActiveWindow):
     def on_add(self, idx: IntArray, Lam: Array, eta: Array) -> None:
         """Record a fusion (processed at the next :meth:`step`)."""
         if self._valid:
-            self._pending.append((idx, Lam, eta))
+            self._pending.append((idx, Lam, eta, self._measuring))
+
+    @contextmanager
+    def not_measuring(self) -> Iterator[None]:
+        """Fusions inside this block are corrections (online relinearisation), not
+        measurements: the states they touch do not count as measured again, so they leave
+        the window when their last measurement is old enough."""
+        self._measuring = False
+        try:
+            yield
+        finally:
+            self._measuring = True
 
     def on_invalidate(self) -> None:
         """``I`` was replaced wholesale: rebuild at the next step."""
@@ -251,28 +295,55 @@ class IncrementalRecovery(ActiveWindow):
         self._owner = np.concatenate([self._owner, np.full(n - len(self._owner), -1, np.int64)])
         pending, self._pending = self._pending, []
         touched = np.concatenate([p[0].ravel() for p in pending]) if pending else np.zeros(0, np.int64)
-        self._last[self._map.start[touched]] = s
+        measured = [p[0].ravel() for p in pending if p[3]]
+        if measured:
+            self._last[self._map.start[np.concatenate(measured)]] = s
+        restart = False
         if not self._valid:
             self._rebuild(info, s)
         else:
             self._append(new)
             marg = np.unique(self._map.start[touched[self._pos[touched] < 0]])
-            if len(marg) and not self._reactivate(marg):
+            plan = self.plan_reactivation(marg) if len(marg) else None
+            if len(marg) and (plan is None or self.reactivation_flops(plan) > self.rebuild_flops()):
                 st.fallbacks += 1
                 self._rebuild(info, s)
+                restart = True
             else:
-                for idx, Lam, eta in pending:
+                if len(marg):
+                    self._reactivate(marg, plan)
+                for idx, Lam, eta, _ in pending:
                     self._route(idx, Lam, eta)
         self._solve()
         x[self.pidx], x[self.fidx] = self.xp, self.xf
+        if restart:  # e.g. a loop closure: every state moved; one back substitution
+            self.full_solution(x)
         st.max_window_poses = max(st.max_window_poses, len(self.pidx) // POSE_DIM)
         self._marginalise(s)
         st.window_poses, st.window_features = len(self.pidx) // POSE_DIM, len(self.fidx) // FEATURE_DIM
 
+    def measured_within(self, starts: IntArray, steps: int) -> NDArray[np.bool_]:
+        """Whether the states whose blocks start at entries ``starts`` (any shape) were
+        measured within the last ``steps`` steps, as of the last step (states added since
+        count as measured now)."""
+        starts = np.asarray(starts, np.int64)
+        known = starts < len(self._last)
+        last = self._last[np.where(known, starts, 0)] if len(self._last) else np.zeros(starts.shape, np.int64)
+        return ~known | (self.stats.steps - last < steps)
+
+    def rebuild_flops(self) -> float:
+        """The cost model of a rebuild (see ``full_solve_flops_per_entry``)."""
+        return max(self.min_rebuild_flops, self.full_solve_flops_per_entry * self._map.n)
+
     # -- rebuild from the full information --------------------------------------------------
     def _rebuild(self, info: InformationStore, s: int) -> None:
-        """Window = recently measured features, their poses and recent poses; the rest is
-        eliminated exactly from the full sparse ``I`` into one conditional."""
+        """Window = features measured within ``rebuild_horizon`` steps, their poses and
+        recent poses (states just measured included, however old); the rest ``m`` is eliminated exactly from the
+        full sparse ``I`` into one conditional: one sparse factorisation of ``I_mm``
+        (features first, :func:`~eifslam.estimation.recovery.factorize` on the entries of
+        ``m``, without extracting ``I_mm``), and ``I_am I_mm^-1 I_ma`` from ``k + 1``
+        solves of its pose system (:meth:`~eifslam.estimation.recovery.SchurFactor.project`),
+        ``k`` the active pose entries: about the cost of one full solve."""
         self.stats.rebuilds += 1
         self._valid = True
         n = self._map.n
@@ -280,30 +351,29 @@ class IncrementalRecovery(ActiveWindow):
         i = np.asarray(info.vector[:n], dtype=float)
         isf, start = self._map.is_feature, self._map.start
         age = s - self._last[start]
-        fa = np.flatnonzero(isf & (age < self.feature_window))
+        fa = np.flatnonzero(isf & (age < max(self.feature_window, self.rebuild_horizon)))
         pose_all = np.flatnonzero(~isf)
         Ifp = I[fa][:, pose_all]
         coupled = np.zeros(n, bool)
         coupled[pose_all[np.unique(Ifp.tocoo().col)]] = True
         blk_coupled = np.zeros(n, bool)
         blk_coupled[start[coupled]] = True
-        pa = np.flatnonzero(~isf & ((age < self.pose_window) | blk_coupled[start]))
+        pa = np.flatnonzero(~isf & ((age < max(self.pose_window, self.rebuild_horizon)) | blk_coupled[start]))
         active = np.zeros(n, bool)
         active[fa] = active[pa] = True
         m = np.flatnonzero(~active)
         self._conds = []
         self._owner = np.full(n, -1, np.int64)
-        P = I[pa][:, pa].toarray()
+        Ia = I[pa]  # (7p, n): the active poses' rows; I_ma is its transpose (I symmetric)
+        P = Ia[:, pa].toarray()
         bp = i[pa].copy()
         if len(m):
-            Imm = I[m][:, m]
-            mf = isf[m]
-            factor = factorize(Imm, np.flatnonzero(~mf), np.flatnonzero(mf))
-            C = I[m][:, pa].tocsr()
-            Y = factor.solve(C.toarray())
-            P -= np.asarray(C.T @ Y)
-            bp -= C.T @ factor.solve(i[m])
-            self._conds.append(Conditional(m, i[m].copy(), C, pa, factor=factor))
+            factor = factorize(I, m[~isf[m]], m[isf[m]])
+            Cg = sp.csr_matrix(Ia.T)
+            CtAC, CtAb = factor.project(Cg, i)
+            P -= CtAC
+            bp -= CtAb
+            self._conds.append(Conditional(m, i[m].copy(), Cg[m], pa, factor=factor.restricted(m)))
             self._owner[m] = 0
         self._pos[:] = -1
         self.pidx, self.fidx = pa, fa

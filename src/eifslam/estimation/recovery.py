@@ -90,6 +90,46 @@ class SchurFactor:
         x[self.feat_idx] = xf
         return x
 
+    def solve_entries(self, r: Array, idx: IntArray) -> Array:
+        """Solve with a right side ``r (len(idx),)`` given on state entries ``idx`` (the
+        factorised ones, in any order); the solution on the same entries."""
+        b = np.zeros(self.n)
+        b[idx] = r
+        return self.solve(b)[idx]
+
+    def project(self, C: sp.spmatrix, b: Array) -> tuple[Array, Array]:
+        """``C^T A^-1 C (k, k)`` and ``C^T A^-1 b (k,)`` for the factorised ``A``.
+
+        ``C (n, k)`` is sparse (rows on the state; rows outside the factorised entries
+        are ignored) and ``b (n,)``. Uses the elimination order, features first: with
+        ``R = C_p - B^T D^-1 C_f``, ``C^T A^-1 C = C_f^T D^-1 C_f + R^T S^-1 R``, so only
+        the rows of ``B`` that ``C_f`` touches are read and ``S`` is solved for ``k + 1``
+        right sides (a rebuild's Schur complement onto the active window without the
+        ``n x k`` dense solve).
+        """
+        C = sp.csr_matrix(C)
+        k = C.shape[1]
+        Cf, Cp = C[self.feat_idx], C[self.pose_idx]
+        F = len(self.Dinv)
+        rows = np.repeat(np.arange(F * 3), 3)
+        cols = (np.arange(F * 3)[:, None] // 3 * 3 + np.arange(3)).ravel()
+        Dsp = sp.csr_matrix((self.Dinv.reshape(F * 3, 3).ravel(), (rows, cols)), shape=(F * 3, F * 3))
+        DCf = sp.csr_matrix(Dsp @ Cf)
+        Dbf = self._dinv_apply(np.asarray(b, float)[self.feat_idx])
+        Rt = (sp.csr_matrix(Cp.T) - sp.csr_matrix(DCf.T) @ self.B).toarray()  # (k, 7P)
+        rb = np.asarray(b, float)[self.pose_idx] - self.B.T @ Dbf
+        if len(self.pose_idx):
+            Y = self.S_factor.solve(np.ascontiguousarray(np.column_stack([Rt.T, rb])))
+        else:
+            Y = np.zeros((0, k + 1))
+        CtAC = (Cf.T @ DCf).toarray() + Rt @ Y[:, :k]
+        CtAb = Cf.T @ Dbf + Rt @ Y[:, k]
+        return 0.5 * (CtAC + CtAC.T), np.asarray(CtAb).ravel()
+
+    def restricted(self, idx: IntArray) -> "RestrictedSolve":
+        """A solver of the factorised block that takes and returns vectors on ``idx``."""
+        return RestrictedSolve(self, np.asarray(idx, np.int64))
+
     def covariance(self, idx: IntArray) -> Array:
         """The block of ``I^-1`` on state indices ``idx`` (k,), without a full inverse."""
         idx = np.asarray(idx, dtype=np.int64)
@@ -100,6 +140,18 @@ class SchurFactor:
         return 0.5 * (C + C.T)
 
 
+@dataclass
+class RestrictedSolve:
+    """``solve(r)`` of a :class:`SchurFactor` with vectors on state entries ``idx``."""
+
+    factor: SchurFactor
+    idx: IntArray
+
+    def solve(self, r: Array) -> Array:
+        """``A^-1 r`` for ``r (len(idx),)``, on the same entries."""
+        return self.factor.solve_entries(r, self.idx)
+
+
 def factorize(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray) -> SchurFactor:
     """Factorise the information matrix ``I`` (n x n) given which entries are features.
 
@@ -108,6 +160,9 @@ def factorize(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray) -> SchurFa
     I : sparse (n, n) information matrix.
     pose_idx : (P*7,) state indices of poses.
     feat_idx : (F*3,) state indices of features (grouped by three, in feature order).
+
+    The two index sets may cover only part of the state: the factor is then that of the
+    block ``I[idx][:, idx]`` (``idx`` their union), still addressed by state index.
     """
     I = sp.csr_matrix(I)
     n = I.shape[0]
