@@ -54,7 +54,10 @@ def run(keyframes: bool, frames: int = 40, seed: int = 2):
     """A slow walk down the corridor (5 cm per frame, 10 frames per second)."""
     sc = corridor_scene(frames, np.random.default_rng(seed), step=0.05, points_per_metre=30.0)
     fe = SyntheticFrontEnd(sc, seed, map_fraction=0.6)
-    slam = Slam(sc.camera, fe.slam_config(system={"mode": "filter", "keyframes": keyframes}), frontend=fe)
+    # the whole triangulation parallax between keyframes (2 deg), so that the walk has
+    # frames between keyframes to test (the default, a quarter of it, keeps more)
+    slam = Slam(sc.camera, fe.slam_config(system={"mode": "filter", "keyframes": keyframes,
+                                                  "keyframe_parallax_deg": 2.0}), frontend=fe)
     for k in range(frames):
         slam.track(k, 0.1 * k)
     slam.finish()
