@@ -108,6 +108,17 @@ class FrontEnd(FrontEndState):
         f = fr.feats
         return FrameFeatures(int(frame_id), f.uv, f.uv_raw, ids, self._tracks.in_map(ids), f.colors)
 
+    def descriptors(self, frame_id: int) -> NDArray | None:
+        """Descriptors ``(N, D)`` of a stored frame's keypoints (rows as in :meth:`frame`),
+        or None when they were dropped (:meth:`forget`)."""
+        self._get(frame_id)
+        return self._desc.get(int(frame_id))
+
+    @property
+    def matcher(self) -> DescriptorMatcher:
+        """The descriptor matcher (ratio test and mutual check of the config)."""
+        return self._matcher
+
     def common_tracks(
         self, i: int, j: int, in_map: bool | None = None
     ) -> tuple[IntArray, Array, Array]:
