@@ -12,7 +12,8 @@ For each frame that became a state of the filter, the :class:`LoopCloser`
    in ``loop_consistency`` consecutive queries;
 4. verifies it geometrically (:func:`~eifslam.frontend.loop_verification.verify_place`:
    PnP on the old map features seen around the candidate and a five-point check with the
-   candidate frame, both with chance-derived inlier counts);
+   candidate frame, both with chance-derived inlier counts, and the five-point rotation
+   within ``agree_rotation_deg`` of the rotation the PnP implies);
 5. fuses the PnP inliers as ``Zm`` of the *old* map features in the current pose, not
    gated (after drift the filter is overconfident about where it is: the loop is trusted
    on its geometric verification alone), and recovers.
@@ -155,7 +156,7 @@ class LoopCloser:
 
     def _verify_and_fuse(self, k: int, j: int, score: float, lo: int, hi: int) -> LoopClosure | None:
         from ..frontend.loop_verification import verify_place
-        from ..geometry.rotations import quat_conjugate, quat_log, quat_multiply
+        from ..geometry.rotations import quat_conjugate, quat_log, quat_multiply, quat_to_rotmat
 
         filt, fe, sysc = self.filter, self.frontend, self.config.system
         filt.complete_estimate()
@@ -184,7 +185,9 @@ class LoopCloser:
         X = filt.x[filt.layout.feature_columns(fids)]
         fk, fj = fe.frame(k), fe.frame(j)
         chk = verify_place(self.camera, fe.matcher, fk.uv, fe.descriptors(k), X, D, fj.uv, fe.descriptors(j),
-                           self.config.zm_sigma_px, floor=sysc.loop_min_inliers, alpha=sysc.loop_false_alarm)
+                           self.config.zm_sigma_px, quat_to_rotmat(filt.pose(j)[1]),
+                           max_rot_deg=sysc.agree_rotation_deg, floor=sysc.loop_min_inliers,
+                           alpha=sysc.loop_false_alarm)
         if not chk.ok:
             self.rejected.append((k, j, chk.reason))
             return None
