@@ -441,6 +441,13 @@ class FrontEnd(FrontEndState):
             self._merge_pairs(np.concatenate(pairs))
         return out
 
+    def join_tracks(self, frame_id: int, keypoints: IntArray, track_ids: IntArray) -> None:
+        """Merge the tracks of keypoints of a frame into known tracks (a verified loop): as
+        :meth:`relocalise` merges matched pairs (same set, no shared frame)."""
+        kp = np.asarray(keypoints, np.int64).reshape(-1)
+        if kp.size:
+            self._merge_pairs(np.stack([self._get(frame_id).raw_ids[kp], np.asarray(track_ids, np.int64)], 1))
+
     def _merge_pairs(self, pairs: IntArray) -> None:
         roots = np.unique(self._tracks.resolve(pairs.reshape(-1)))
         frames: dict[int, set[int]] = {int(r): set() for r in roots}

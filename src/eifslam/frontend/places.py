@@ -105,8 +105,10 @@ class PlaceIndex:
         :attr:`frame_ids` order (one sparse product over the word-major database)."""
         if not self._ids:
             return np.zeros(0)
-        if self._matrix is None or self._matrix.shape[0] != len(self._rows):
+        if self._matrix is None:
             self._matrix = sp.vstack(self._rows, format="csr")
+        elif self._matrix.shape[0] != len(self._rows):  # append the new rows only
+            self._matrix = sp.vstack([self._matrix, *self._rows[self._matrix.shape[0]:]], format="csr")
         return np.asarray((self._matrix @ v.T).toarray()).reshape(-1)
 
     # -- updates ------------------------------------------------------------------

@@ -16,7 +16,12 @@ For each frame that became a state of the filter, the :class:`LoopCloser`
    within ``agree_rotation_deg`` of the rotation the PnP implies);
 5. fuses the PnP inliers as ``Zm`` of the *old* map features in the current pose, not
    gated (after drift the filter is overconfident about where it is: the loop is trusted
-   on its geometric verification alone), and recovers.
+   on its geometric verification alone), and recovers;
+6. merges the tracks of the inlier keypoints that are not map features yet into the old
+   features' tracks (:meth:`FrontEnd.join_tracks`), so that the following frames observe
+   the old features through ordinary tracking (their ``Zm`` gated as usual). Keypoints
+   whose tracks are already map features keep them: the filter does not merge two
+   feature states, so a place mapped twice keeps both copies, each with its own ``Zm``.
 
 Sparsity: each loop ``Zm`` couples the current pose with one old feature, so ``I`` gains
 exactly the pose-feature blocks of the verified inliers (nothing else fills in). Over the
@@ -198,6 +203,10 @@ class LoopCloser:
                                        self.config.zm_sigma_px)
         fused = filt.fuse_features(obs, gate=False)
         filt.recover_active()
+        # track merging: keypoints whose tracks are not map features yet continue the old
+        # features' tracks, so the next frames observe the old features as usual (Zm, gated)
+        free = ~filt.layout.has_features(fk.track_ids[chk.keypoints])
+        fe.join_tracks(k, chk.keypoints[free], fids[chk.features][free])
         lc = LoopClosure(k, j, score, chk.matches, chk.inliers, chk.required, chk.five_point_inliers,
                          chk.five_point_required, len(fused), dp, dq)
         self.closures.append(lc)
