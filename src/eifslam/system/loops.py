@@ -165,28 +165,25 @@ class LoopCloser:
 
         filt, fe, sysc = self.filter, self.frontend, self.config.system
         filt.complete_estimate()
-        fids, rows = [], []
-        seen: set[int] = set()
         stored = set(fe.frame_ids)
-        for f in range(lo, hi + 1):
-            d = fe.descriptors(f) if f in stored else None
-            if d is None or not filt.layout.has_pose(f):
-                continue
-            ff = fe.frame(f)
-            has = filt.layout.has_features(ff.track_ids)
-            for r in np.flatnonzero(has):
-                t = int(ff.track_ids[r])
-                if t not in seen:
-                    seen.add(t)
-                    fids.append(t)
-                    rows.append(d[r])
-        own = set(fe.frame(k).track_ids.tolist())
-        keep = [i for i, t in enumerate(fids) if t not in own]
-        if len(keep) < sysc.loop_min_inliers:
+        tids, descs = [], []
+        for f in range(lo, hi + 1):  # the old map features seen around the candidate, with descriptors
+            d = fe.descriptors(f) if f in stored and filt.layout.has_pose(f) else None
+            if d is not None:
+                t = fe.frame(f).track_ids
+                has = filt.layout.has_features(t)
+                tids.append(t[has])
+                descs.append(d[has])
+        if not tids:
+            return None
+        t_all = np.concatenate(tids)
+        fids, first = np.unique(t_all, return_index=True)  # one descriptor per feature: its first
+        keep = ~np.isin(fids, fe.frame(k).track_ids)
+        if keep.sum() < sysc.loop_min_inliers:
             self.rejected.append((k, j, "too few old map features"))
             return None
-        fids = np.array([fids[i] for i in keep], np.int64)
-        D = np.stack([rows[i] for i in keep])
+        fids = fids[keep].astype(np.int64)
+        D = np.concatenate(descs)[first[keep]]
         X = filt.x[filt.layout.feature_columns(fids)]
         fk, fj = fe.frame(k), fe.frame(j)
         chk = verify_place(self.camera, fe.matcher, fk.uv, fe.descriptors(k), X, D, fj.uv, fe.descriptors(j),
