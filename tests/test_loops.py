@@ -74,16 +74,19 @@ def test_verify_place_recovers_the_pose_and_refuses_wrong_associations():
     uv_k = _view(rng, cam, R_k, p_k, X)
     uv_j = _view(rng, cam, np.eye(3), np.array([-0.4, 0.0, 0.0]), X)
     m = DescriptorMatcher(0.8, True)
-    ok = verify_place(cam, m, uv_k, desc, X, desc, uv_j, desc, sigma_px=1.0, R_wc_j=np.eye(3), floor=20)
+    ok = verify_place(cam, m, uv_k, desc, X, desc, uv_j, desc, sigma_px=1.0, p_j=np.array([-0.4, 0.0, 0.0]),
+                      R_wc_j=np.eye(3), floor=20)
     assert ok.ok and ok.inliers > 250 and ok.five_point_inliers > 250
     assert 1e-5 < np.linalg.norm(ok.p - p_k) < 0.05
     np.testing.assert_allclose(quat_to_rotmat(ok.q), R_k, atol=5e-3)
     assert np.array_equal(np.sort(ok.keypoints), np.sort(ok.features))  # keypoint i observes feature i
     # the same descriptors attached to the wrong map points: no pose explains them
-    bad = verify_place(cam, m, uv_k, desc, X[rng.permutation(300)], desc, uv_j, desc, sigma_px=1.0, R_wc_j=np.eye(3), floor=20)
+    bad = verify_place(cam, m, uv_k, desc, X[rng.permutation(300)], desc, uv_j, desc, sigma_px=1.0, p_j=np.array([-0.4, 0.0, 0.0]),
+                      R_wc_j=np.eye(3), floor=20)
     assert not bad.ok and bad.reason in ("PnP failed", "too few PnP inliers")
     # the right map, but an old frame of another place: the five-point check refuses it
-    other = verify_place(cam, m, uv_k, desc, X, desc, uv_j[rng.permutation(300)], desc, sigma_px=1.0, R_wc_j=np.eye(3), floor=20)
+    other = verify_place(cam, m, uv_k, desc, X, desc, uv_j[rng.permutation(300)], desc, sigma_px=1.0, p_j=np.array([-0.4, 0.0, 0.0]),
+                      R_wc_j=np.eye(3), floor=20)
     assert not other.ok and other.reason in ("too few five-point inliers",
                                             "five-point rotation disagrees with the PnP")
 
@@ -136,3 +139,14 @@ def test_report_lists_loops_and_the_option_turns_loop_closure_off(tmp_path):
     from eifslam.sim.scene import make_scene
 
     assert not Slam(make_scene().camera, SlamConfig().replace(system={"loop_closure": False})).loops.enabled
+
+
+def test_the_loop_closer_state_survives_a_session_round_trip(two_laps):
+    from eifslam.system.loops import LoopCloser
+
+    scene, idx, slam = two_laps
+    back = LoopCloser(slam.camera, slam.config, slam.frontend, slam.filter, slam.mapper)
+    back.load_state_dict(slam.loops.state_dict())
+    assert back.closures == slam.loops.closures and back.index.frame_ids == slam.loops.index.frame_ids
+    k = idx.index(9, 18)  # the second visit of scene frame 9
+    np.testing.assert_allclose(back.index.scores(k, range(k)), slam.loops.index.scores(k, range(k)))

@@ -40,7 +40,8 @@ def _poses(slam: Slam) -> np.ndarray:
 @pytest.mark.parametrize("recovery", ["full", "incremental"])
 def test_a_loaded_session_continues_as_the_uninterrupted_run(scene_images, tmp_path, recovery):
     scene, images = scene_images
-    cfg = SlamConfig().replace(system={"recovery": recovery, "keyframes": True})  # keyframe state saved too
+    cfg = SlamConfig().replace(system={"recovery": recovery, "keyframes": True,  # keyframe state saved too
+                                        "loop_train_frames": 3})  # and a learnt place index
     whole = _run(scene, images, cfg, range(9))
     first = _run(scene, images, cfg, range(6))
     path = tmp_path / "six.npz"

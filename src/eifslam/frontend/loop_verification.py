@@ -105,8 +105,8 @@ class PlaceCheck:
 
 
 def verify_place(camera: PinholeCamera, matcher: DescriptorMatcher, uv_k: Array, desc_k: NDArray,
-                 X: Array, desc_X: NDArray, uv_j: Array, desc_j: NDArray, sigma_px: float, R_wc_j: Array, *,
-                 max_rot_deg: float = 2.0, floor: int = 25, alpha: float = 1e-6, iterations: int = 1000
+                 X: Array, desc_X: NDArray, uv_j: Array, desc_j: NDArray, sigma_px: float, p_j: Array, R_wc_j: Array, *,
+                 max_rot_deg: float = 2.0, min_parallax_deg: float = 2.0, floor: int = 25, alpha: float = 1e-6, iterations: int = 1000
                  ) -> PlaceCheck:
     """Verify that frame *k* sees the place of old map features and of old frame *j*.
 
@@ -120,12 +120,17 @@ def verify_place(camera: PinholeCamera, matcher: DescriptorMatcher, uv_k: Array,
     uv_j, desc_j : keypoints and descriptors of the old frame (five-point check).
     sigma_px : float
         Standard deviation of a keypoint, pixels (the ``Zm`` sigma).
-    R_wc_j : (3, 3)
-        Orientation of the old frame in the old map (the filter's estimate).
+    p_j, R_wc_j : (3,), (3, 3)
+        Centre and orientation of the old frame in the old map (the filter's estimate).
     max_rot_deg : float
         Largest angle between the relative rotation of the five-point model and the one
         the PnP pose and ``R_wc_j`` imply (a chance essential matrix fitted to wrong
         matches rotates anywhere).
+    min_parallax_deg : float
+        The rotation is compared only when the baseline between the two frames (PnP
+        centre to ``p_j``) subtends at least this angle at the median depth of the PnP
+        inliers: on a shorter baseline the essential matrix is degenerate and its
+        rotation undetermined.
     floor, alpha, iterations : see :func:`min_inliers`; ``iterations`` is also the RANSAC
         budget of each model.
 
@@ -170,7 +175,11 @@ def verify_place(camera: PinholeCamera, matcher: DescriptorMatcher, uv_k: Array,
     if len(ja) >= need5:
         E, in5 = essential_ransac(uv_k[ja], uv_j[jb], K, r, 0.9999)
         n5 = int(in5.sum()) if E is not None else 0
-        if n5 >= need5:
+        baseline = float(np.linalg.norm(p - np.asarray(p_j, float)))
+        depth = float(np.median(z[good])) if good.any() else np.inf
+        if n5 >= need5 and baseline < depth * np.tan(np.radians(min_parallax_deg)):
+            rot = 0.0  # no parallax: the rotation of E is undetermined, not evidence either way
+        elif n5 >= need5:
             _, R5, _, _ = cv2.recoverPose(E[:3, :3], uv_k[ja][in5], uv_j[jb][in5], K)
             R_pred = np.asarray(R_wc_j, float).T @ R.T  # camera k to camera j, from the PnP
             rot = float(np.degrees(np.arccos(np.clip((np.trace(R5.T @ R_pred) - 1.0) / 2.0, -1.0, 1.0))))

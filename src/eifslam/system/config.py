@@ -148,6 +148,10 @@ class SystemConfig:
     loop_consistency : int
         A candidate place must come back in this many consecutive queries (DBoW/ORB-SLAM's
         temporal consistency) before it is verified.
+    loop_smooth_passes : int
+        After a loop is fused, relinearise every stored measurement and recover this many
+        passes at most (:func:`~eifslam.estimation.smoothing.smooth`, no outlier gates);
+        0: the loop's ``Zm`` are fused at the current linearisation point only.
     """
 
     mode: Mode = Mode.SMOOTH
@@ -180,6 +184,7 @@ class SystemConfig:
     loop_min_inliers: int = 25
     loop_false_alarm: float = 1e-6
     loop_consistency: int = 3
+    loop_smooth_passes: int = 0
 
     def __post_init__(self) -> None:
         try:
@@ -193,7 +198,7 @@ class SystemConfig:
         if not isinstance(self.loop_closure, bool):
             raise ConfigError(f"system.loop_closure must be true or false, got {self.loop_closure!r}")
         for key, lo in (("loop_words", 2), ("loop_train_frames", 1), ("loop_min_inliers", 6),
-                        ("loop_consistency", 1)):
+                        ("loop_consistency", 1), ("loop_smooth_passes", 0)):
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
                 raise ConfigError(f"system.{key} must be an integer >= {lo}, got {v!r}")

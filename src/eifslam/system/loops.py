@@ -13,7 +13,8 @@ For each frame that became a state of the filter, the :class:`LoopCloser`
 4. verifies it geometrically (:func:`~eifslam.frontend.loop_verification.verify_place`:
    PnP on the old map features seen around the candidate and a five-point check with the
    candidate frame, both with chance-derived inlier counts, and the five-point rotation
-   within ``agree_rotation_deg`` of the rotation the PnP implies);
+   within ``agree_rotation_deg`` of the rotation the PnP implies when the baseline has
+   the parallax a new feature needs);
 5. fuses the PnP inliers as ``Zm`` of the *old* map features in the current pose, not
    gated (after drift the filter is overconfident about where it is: the loop is trusted
    on its geometric verification alone), and recovers;
@@ -187,8 +188,9 @@ class LoopCloser:
         X = filt.x[filt.layout.feature_columns(fids)]
         fk, fj = fe.frame(k), fe.frame(j)
         chk = verify_place(self.camera, fe.matcher, fk.uv, fe.descriptors(k), X, D, fj.uv, fe.descriptors(j),
-                           self.config.zm_sigma_px, quat_to_rotmat(filt.pose(j)[1]),
-                           max_rot_deg=sysc.agree_rotation_deg, floor=sysc.loop_min_inliers,
+                           self.config.zm_sigma_px, filt.pose(j)[0], quat_to_rotmat(filt.pose(j)[1]),
+                           max_rot_deg=sysc.agree_rotation_deg, min_parallax_deg=sysc.feature_parallax_deg,
+                           floor=sysc.loop_min_inliers,
                            alpha=sysc.loop_false_alarm)
         if not chk.ok:
             self.rejected.append((k, j, chk.reason))
@@ -200,6 +202,15 @@ class LoopCloser:
                                        self.config.zm_sigma_px)
         fused = filt.fuse_features(obs, gate=False)
         filt.recover_active()
+        if sysc.loop_smooth_passes:
+            # the loop's correction can be far from the linearisation point of the poses it
+            # moves: relinearise every stored measurement (paper III-E) a few passes, as
+            # ORB-SLAM optimises after a loop; the incremental window is rebuilt next step
+            from ..estimation.smoothing import smooth
+
+            filt.complete_estimate()
+            smooth(filt, sysc.loop_smooth_passes)
+            filt.set_estimate(filt.x.copy())
         # track merging: keypoints whose tracks are not map features yet continue the old
         # features' tracks, so the next frames observe the old features as usual (Zm, gated)
         free = ~filt.layout.has_features(fk.track_ids[chk.keypoints])
