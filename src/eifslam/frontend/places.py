@@ -53,7 +53,8 @@ class PlaceIndex:
     train_frames : int
         Frames whose descriptors train the vocabulary.
     per_frame : int
-        At most this many descriptors of each training frame (a seeded random subset).
+        At most this many descriptors of each frame, for training and for its word
+        histogram (a seeded random subset).
     seed : int
         Seed of the subsampling and of k-means (a run is repeatable).
     """
@@ -115,13 +116,14 @@ class PlaceIndex:
     def add(self, frame_id: int, descriptors: NDArray) -> bool:
         """Add a frame's descriptors ``(N, D)``; returns whether it is indexed (False while
         the vocabulary is still being gathered)."""
-        F = descriptor_features(descriptors)
+        d = np.asarray(descriptors)
+        rng = np.random.default_rng(self.seed + int(frame_id))
+        if len(d) > self.per_frame:  # a seeded subset: the word histogram of 300 is as telling, and cheaper
+            d = d[np.sort(rng.choice(len(d), self.per_frame, replace=False))]
+        F = descriptor_features(d)
         if self.ready:
             self._index(int(frame_id), F)
             return True
-        rng = np.random.default_rng(self.seed + int(frame_id))
-        if len(F) > self.per_frame:
-            F = F[np.sort(rng.choice(len(F), self.per_frame, replace=False))]
         self._pending.append((int(frame_id), F))
         if len(self._pending) >= self.train_frames:
             self._learn()
