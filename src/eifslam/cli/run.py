@@ -35,6 +35,12 @@ def add_common_options(p: argparse.ArgumentParser, max_features: int | None = No
                    help=f"features detected per image (default {max_features or fe.max_features})")
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames")
     p.add_argument("--no-html", action="store_true", help="skip report.html")
+    loops = p.add_mutually_exclusive_group()
+    loops.add_argument("--loop-closure", action="store_true",
+                       help="place recognition and loop closure (system.loop_closure true; "
+                            f"default {'on' if sy.loop_closure else 'off'})")
+    loops.add_argument("--no-loop-closure", action="store_true",
+                       help="no place recognition or loop closure (system.loop_closure false)")
     p.add_argument("--config", type=Path, default=None, metavar="FILE.yaml",
                    help="settings from a YAML file (any of 'eifslam config' prints); the options above "
                         "override it")
@@ -137,6 +143,10 @@ def make_config(args: argparse.Namespace, base: SlamConfig | None = None) -> Sla
     if getattr(args, "seed", None) is not None:
         fe["seed"] = args.seed
     sy = {} if args.mode is None else {"mode": args.mode}
+    if getattr(args, "no_loop_closure", False):
+        sy["loop_closure"] = False
+    elif getattr(args, "loop_closure", False):
+        sy["loop_closure"] = True
     return (base or SlamConfig()).replace(frontend=fe, system=sy)
 
 

@@ -58,6 +58,20 @@ def frame_rows(slam: Slam) -> list[dict[str, Any]]:
     return rows
 
 
+def loop_rows(slam: Slam, input_index: dict[int, int] | None = None) -> list[dict[str, Any]]:
+    """``report.json``'s ``loop_closures``: one dict per loop (:class:`~eifslam.system.loops.LoopClosure`),
+    ``frame`` and ``matched_frame`` mapped through ``input_index`` (the system's frame id
+    to the input frame's index, which differ when unreadable images were skipped)."""
+    rows = []
+    for c in slam.loop_closures:
+        d = c.to_dict()
+        if input_index is not None:
+            d["frame"] = input_index.get(c.frame, c.frame)
+            d["matched_frame"] = input_index.get(c.matched_frame, c.matched_frame)
+        rows.append(d)
+    return rows
+
+
 def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
             extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """The figures of ``report.json``."""
@@ -76,7 +90,7 @@ def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
         detector=slam.config.frontend.detector, map_fraction=slam.config.frontend.map_fraction,
         stage_ms_median={s: _median([r.timings_ms[s] for r in res if s in r.timings_ms]) for s in stages},
         total_seconds=round(total_s, 3), fps=round(n / total_s, 3) if total_s > 0 else None,
-        eifslam_version=__version__, config=slam.config.to_dict(),
+        eifslam_version=__version__, config=slam.config.to_dict(), loop_closures=loop_rows(slam),
     )
     if slam.smoothing is not None:
         sm = slam.smoothing
@@ -245,6 +259,9 @@ def _run_and_write(seq, config, out_dir: str | Path, max_frames: int | None, sca
     gt, skipped = scoring_ground_truth(seq)
     extra = dict(extra or {})
     extra["source"] = str(getattr(seq, "root", ""))
+    by_time = {f.timestamp: k for k, f in enumerate(getattr(seq, "frames", []))}
+    extra["loop_closures"] = loop_rows(run.slam, {r.frame_id: by_time.get(r.timestamp, r.frame_id)
+                                                  for r in run.slam.results})
     if run.stopped:
         extra["stopped"] = run.stopped
     if run.scale_error:

@@ -108,6 +108,17 @@ class FrontEnd(FrontEndState):
         f = fr.feats
         return FrameFeatures(int(frame_id), f.uv, f.uv_raw, ids, self._tracks.in_map(ids), f.colors)
 
+    def descriptors(self, frame_id: int) -> NDArray | None:
+        """Descriptors ``(N, D)`` of a stored frame's keypoints (rows as in :meth:`frame`),
+        or None when they were dropped (:meth:`forget`)."""
+        self._get(frame_id)
+        return self._desc.get(int(frame_id))
+
+    @property
+    def matcher(self) -> DescriptorMatcher:
+        """The descriptor matcher (ratio test and mutual check of the config)."""
+        return self._matcher
+
     def common_tracks(
         self, i: int, j: int, in_map: bool | None = None
     ) -> tuple[IntArray, Array, Array]:
@@ -429,6 +440,13 @@ class FrontEnd(FrontEndState):
         if pairs:
             self._merge_pairs(np.concatenate(pairs))
         return out
+
+    def join_tracks(self, frame_id: int, keypoints: IntArray, track_ids: IntArray) -> None:
+        """Merge the tracks of keypoints of a frame into known tracks (a verified loop): as
+        :meth:`relocalise` merges matched pairs (same set, no shared frame)."""
+        kp = np.asarray(keypoints, np.int64).reshape(-1)
+        if kp.size:
+            self._merge_pairs(np.stack([self._get(frame_id).raw_ids[kp], np.asarray(track_ids, np.int64)], 1))
 
     def _merge_pairs(self, pairs: IntArray) -> None:
         roots = np.unique(self._tracks.resolve(pairs.reshape(-1)))

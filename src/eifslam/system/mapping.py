@@ -101,6 +101,15 @@ class Mapper:
         """RGB colours ``(F, 3)`` of map features (grey for a feature never coloured)."""
         return np.array([self._colors.get(int(i), _GREY) for i in track_ids], np.uint8).reshape(-1, 3)
 
+    def covisible(self, track_ids) -> dict[int, int]:
+        """Frames that observed any of the given tracks (recorded map observations), with
+        how many of the tracks each observed: the covisibility of a frame's map tracks."""
+        out: dict[int, int] = {}
+        for t in np.asarray(track_ids, np.int64).reshape(-1).tolist():
+            for k in {j for j, _ in self._track_obs.get(t, [])}:
+                out[k] = out.get(k, 0) + 1
+        return out
+
     # -- per frame ----------------------------------------------------------------
     def record_observations(self, k: int) -> tuple[NDArray[np.int64], Array]:
         """Store frame *k*'s map observations per track (and first colours); return the

@@ -11,8 +11,9 @@ The file is an ``.npz`` archive (a zip of ``.npy`` arrays) that holds nothing bu
 Each part says what it keeps (``state_dict()``) and takes it back checked
 (``load_state_dict(d)``): the filter (layout, estimate, ``I`` as CSC arrays, ``i``,
 priors, stored measurements; the incremental window is rebuilt from ``I`` at the next
-frame), the front end (keypoints, descriptors, tracks), the tracker, the mapper and the
-keyframe step (the frames localised on the map between keyframes).
+frame), the front end (keypoints, descriptors, tracks), the tracker, the mapper, the
+keyframe step (the frames localised on the map between keyframes) and the loop closer
+(vocabulary, bag-of-words index, loops found).
 Loading never unpickles (``np.load(..., allow_pickle=False)``) and never trusts a size:
 each member's header is read first and its declared shape checked against the bytes it
 holds. A foreign, truncated or crafted file, or one of another version, gives one
@@ -82,6 +83,7 @@ def save_session(slam: "Slam", path: str | Path) -> None:
         "tracker": slam.tracker.state_dict(),
         "mapper": slam.mapper.state_dict(),
         "keyframes": slam.keyframes.state_dict(),
+        "loops": slam.loops.state_dict(),
     }
     arrays: dict[str, np.ndarray] = {}
     doc = _split(state, "", arrays)
@@ -254,6 +256,8 @@ def _build(doc: Mapping[str, Any]) -> "Slam":
     slam.tracker.load_state_dict(sub(doc, "tracker"))
     slam.mapper.load_state_dict(sub(doc, "mapper"))
     slam.keyframes.load_state_dict(sub(doc, "keyframes"))
+    if "loops" in doc:  # sessions saved before loop closure keep none
+        slam.loops.load_state_dict(sub(doc, "loops"))
     n = len(results)
     frames, poses = np.array(slam.frontend.frame_ids, np.int64), np.array(slam.filter.layout.pose_ids, np.int64)
     waiting = doc.get("waiting")

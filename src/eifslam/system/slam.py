@@ -29,6 +29,7 @@ from ..geometry.camera import PinholeCamera
 from .config import Mode, SlamConfig
 from .finishing import FinishReport, bundle_adjust_slam
 from .keyframes import Keyframes
+from .loops import LoopCloser, LoopClosure
 from .mapping import Mapper
 from .session import load_session, save_session
 from .tracking import Tracker
@@ -133,6 +134,7 @@ class Slam:
         self.mapper = Mapper(camera, self.config, self.frontend, self.filter)
         self.tracker = Tracker(camera, self.config, self.frontend, self.filter, self.mapper)
         self.keyframes = Keyframes(camera, self.config, self.frontend, self.filter)
+        self.loops = LoopCloser(camera, self.config, self.frontend, self.filter, self.mapper)
         self.results: list[TrackResult] = []
         self.smoothing: SmoothingReport | None = None
         self.bundle_adjustment: BAResult | None = None
@@ -179,6 +181,11 @@ class Slam:
         self.filter.complete_estimate()
         ids, X = self.filter.features()
         return np.asarray(ids, np.int64), X, self.mapper.colors(ids)
+
+    @property
+    def loop_closures(self) -> list[LoopClosure]:
+        """The loops found and fused so far (:mod:`~.loops`), in the order found."""
+        return list(self.loops.closures)
 
     def feature_covariance(self, track_id: int) -> Array:
         """3x3 covariance of a map feature."""
@@ -233,9 +240,17 @@ class Slam:
                 tracker.localise_and_fuse(k, rp, timings)
         except EstimatorError as exc:  # keep the run alive; the frame counts as lost
             return self._record(TrackResult(k, ts, self._lost_state(), reason=f"lost: {exc}", timings_ms=timings), t0)
+        t1 = time.perf_counter()
+        try:
+            loop = self.loops.process(k)
+        except EstimatorError:  # a loop that cannot be fused is a loop not closed
+            loop = None
+        timings["loop"] = 1e3 * (time.perf_counter() - t1)
+        why = self._keyframe_why if loop is None else f"{self._keyframe_why}{'; ' if self._keyframe_why else ''}" \
+            f"loop closed with frame {loop.matched_frame}"
         p, q = self.filter.pose(k)
         cov = self.filter.pose_covariance(k)
-        res = TrackResult(k, ts, TrackingState.TRACKING, p, q, cov, reason=self._keyframe_why,
+        res = TrackResult(k, ts, TrackingState.TRACKING, p, q, cov, reason=why,
                           reference=rp.measurement.i, timings_ms=timings)
         return self._record(res, t0)
 

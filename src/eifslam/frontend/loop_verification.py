@@ -1,0 +1,191 @@
+"""Geometric verification of a place-recognition candidate (OpenCV).
+
+A candidate loop (current frame *k*, old frame *j*) is accepted only when both hold:
+
+1. **Map-feature PnP**: the current frame's descriptors, matched (ratio test, mutual) to
+   the descriptors of old map features, give a camera pose by ``cv2.solvePnPRansac`` that
+   fits at least :func:`min_inliers` of the matches within the chi-square reprojection
+   radius ``sigma_px * sqrt(chi2_2(0.99))``.
+2. **Five-point**: the two frames' keypoints, matched directly, fit one essential matrix
+   (``essential_ransac``) with at least :func:`min_inliers` inliers under the epipolar
+   version of the same argument, and its relative rotation agrees with the one the PnP
+   pose and the old frame's estimated orientation imply. (The inlier count alone is not
+   enough: on 300 shuffled matches USAC's optimised essential matrix gathered 25 inliers
+   where the binomial bound asked for 23.)
+
+The inlier counts are not tuned constants: :func:`min_inliers` is the smallest count that
+wrong matches (uniform over the image) reach by chance with probability below ``alpha``
+over every RANSAC hypothesis (a binomial tail), with a floor.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ..geometry.camera import PinholeCamera
+from ..geometry.rotations import rotmat_to_quat
+from .matching import DescriptorMatcher, essential_ransac
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+__all__ = ["PlaceCheck", "chi2_radius", "min_inliers", "verify_place"]
+
+#: 99% quantile of chi-square with 2 degrees of freedom (a pixel residual).
+CHI2_2DOF_99 = 9.21
+
+
+def chi2_radius(sigma_px: float) -> float:
+    """Reprojection radius (pixels) inside which 99% of correct ``sigma_px`` measurements fall."""
+    return float(sigma_px) * float(np.sqrt(CHI2_2DOF_99))
+
+
+def min_inliers(n_matches: int, p_chance: float, hypotheses: int, alpha: float, floor: int) -> int:
+    """Smallest inlier count that chance does not explain.
+
+    Parameters
+    ----------
+    n_matches : int
+        Putative matches.
+    p_chance : float
+        Probability that a wrong match falls inside the inlier region of a wrong model
+        (e.g. the area of the reprojection disc over the image area).
+    hypotheses : int
+        Models RANSAC tries (a union bound over all of them).
+    alpha : float
+        Accepted probability of a chance model reaching the count.
+    floor : int
+        Never fewer than this.
+
+    Returns
+    -------
+    int
+        ``max(floor, n)`` with ``hypotheses * P(Binomial(n_matches, p_chance) >= n) <= alpha``.
+    """
+    from scipy.stats import binom
+
+    p = float(np.clip(p_chance, 0.0, 1.0))
+    n = int(binom.isf(alpha / max(int(hypotheses), 1), int(n_matches), p)) + 1 if n_matches > 0 else 1
+    return max(int(floor), n)
+
+
+@dataclass(frozen=True)
+class PlaceCheck:
+    """The outcome of :func:`verify_place` (an expected failure is a value).
+
+    Attributes
+    ----------
+    ok : bool
+    reason : str, why it failed ("" when ok).
+    matches : putative descriptor matches to the map features.
+    inliers : PnP inliers.
+    required : the inlier count required (:func:`min_inliers`) of the PnP.
+    five_point_inliers, five_point_required : the same for the five-point check.
+    p, q : (3,), (4,) camera centre and ``q_wc`` of the current frame from the PnP (in
+        the old map's frame), or None.
+    keypoints : (M,) indices of the current frame's keypoints that are PnP inliers.
+    features : (M,) indices (into the given map features) they observe.
+    """
+
+    ok: bool
+    reason: str = ""
+    matches: int = 0
+    inliers: int = 0
+    required: int = 0
+    five_point_inliers: int = 0
+    five_point_required: int = 0
+    p: Array | None = None
+    q: Array | None = None
+    keypoints: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+    features: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+
+def verify_place(camera: PinholeCamera, matcher: DescriptorMatcher, uv_k: Array, desc_k: NDArray,
+                 X: Array, desc_X: NDArray, uv_j: Array, desc_j: NDArray, sigma_px: float, p_j: Array, R_wc_j: Array, *,
+                 max_rot_deg: float = 2.0, min_parallax_deg: float = 2.0, floor: int = 25, alpha: float = 1e-6, iterations: int = 1000
+                 ) -> PlaceCheck:
+    """Verify that frame *k* sees the place of old map features and of old frame *j*.
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+    matcher : DescriptorMatcher
+        The front end's matcher (ratio test, mutual check).
+    uv_k, desc_k : (N, 2) undistorted pixels and (N, D) descriptors of the current frame.
+    X, desc_X : (F, 3) map feature positions and (F, D) descriptors (of an observation).
+    uv_j, desc_j : keypoints and descriptors of the old frame (five-point check).
+    sigma_px : float
+        Standard deviation of a keypoint, pixels (the ``Zm`` sigma).
+    p_j, R_wc_j : (3,), (3, 3)
+        Centre and orientation of the old frame in the old map (the filter's estimate).
+    max_rot_deg : float
+        Largest angle between the relative rotation of the five-point model and the one
+        the PnP pose and ``R_wc_j`` imply (a chance essential matrix fitted to wrong
+        matches rotates anywhere).
+    min_parallax_deg : float
+        The rotation is compared only when the baseline between the two frames (PnP
+        centre to ``p_j``) subtends at least this angle at the median depth of the PnP
+        inliers: on a shorter baseline the essential matrix is degenerate and its
+        rotation undetermined.
+    floor, alpha, iterations : see :func:`min_inliers`; ``iterations`` is also the RANSAC
+        budget of each model.
+
+    Returns
+    -------
+    PlaceCheck
+    """
+    r = chi2_radius(sigma_px)
+    area = float(camera.width * camera.height)
+    if len(desc_k) < 2 or len(desc_X) < 2:
+        return PlaceCheck(False, "too few descriptors")
+    ia, ib = matcher.match(desc_k, np.asarray(desc_X, desc_k.dtype))
+    n = len(ia)
+    need = min_inliers(n, np.pi * r * r / area, iterations, alpha, floor)
+    if n < need:
+        return PlaceCheck(False, "too few matches to the map", matches=n, required=need)
+    K = camera.K
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(
+        np.ascontiguousarray(X[ib], np.float64), np.ascontiguousarray(uv_k[ia], np.float64), K, None,
+        iterationsCount=int(iterations), reprojectionError=r, confidence=0.9999, flags=cv2.SOLVEPNP_EPNP)
+    if not ok or inl is None or len(inl) < 6:
+        return PlaceCheck(False, "PnP failed", matches=n, required=need)
+    inl = inl.reshape(-1)
+    rvec, tvec = cv2.solvePnPRefineLM(X[ib][inl], uv_k[ia][inl], K, None, rvec, tvec)
+    if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+        return PlaceCheck(False, "PnP failed", matches=n, required=need)
+    R, _ = cv2.Rodrigues(rvec)
+    Xc = X[ib] @ R.T + tvec.reshape(1, 3)
+    z = Xc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        h = np.stack([camera.fx * Xc[:, 0] / z + camera.cx, camera.fy * Xc[:, 1] / z + camera.cy], 1)
+    good = (z > 0) & np.all(np.isfinite(h), 1) & (np.linalg.norm(h - uv_k[ia], axis=1) <= r)
+    m = int(good.sum())
+    p = (-R.T @ tvec.reshape(3)).astype(float)
+    q = rotmat_to_quat(R.T)
+    if m < need:
+        return PlaceCheck(False, "too few PnP inliers", matches=n, inliers=m, required=need, p=p, q=q)
+    ja, jb = matcher.match(desc_k, np.asarray(desc_j, desc_k.dtype))
+    diag = float(np.hypot(camera.width, camera.height))
+    need5 = min_inliers(len(ja), 2.0 * r * diag / area, iterations, alpha, floor)
+    n5, rot = 0, 180.0
+    if len(ja) >= need5:
+        E, in5 = essential_ransac(uv_k[ja], uv_j[jb], K, r, 0.9999)
+        n5 = int(in5.sum()) if E is not None else 0
+        baseline = float(np.linalg.norm(p - np.asarray(p_j, float)))
+        depth = float(np.median(z[good])) if good.any() else np.inf
+        if n5 >= need5 and baseline < depth * np.tan(np.radians(min_parallax_deg)):
+            rot = 0.0  # no parallax: the rotation of E is undetermined, not evidence either way
+        elif n5 >= need5:
+            _, R5, _, _ = cv2.recoverPose(E[:3, :3], uv_k[ja][in5], uv_j[jb][in5], K)
+            R_pred = np.asarray(R_wc_j, float).T @ R.T  # camera k to camera j, from the PnP
+            rot = float(np.degrees(np.arccos(np.clip((np.trace(R5.T @ R_pred) - 1.0) / 2.0, -1.0, 1.0))))
+    common = dict(matches=n, inliers=m, required=need, five_point_inliers=n5, five_point_required=need5, p=p, q=q)
+    if n5 < need5:
+        return PlaceCheck(False, "too few five-point inliers", **common)
+    if rot > max_rot_deg:
+        return PlaceCheck(False, "five-point rotation disagrees with the PnP", **common)
+    return PlaceCheck(True, "", keypoints=ia[good].astype(np.int64), features=ib[good].astype(np.int64), **common)

@@ -1,0 +1,240 @@
+"""Loop closure: place recognition, geometric verification and fusion into the EIF.
+
+For each frame that became a state of the filter, the :class:`LoopCloser`
+
+1. indexes the frame's descriptors in a bag of visual words
+   (:class:`~eifslam.frontend.places.PlaceIndex`);
+2. looks for candidate places among the frames *older than every frame that shares a map
+   track with it* (the exclusion is the frame's covisibility, not a fixed count), whose
+   similarity reaches the lowest similarity of the frame to its strongly covisible
+   frames (those sharing at least ``loop_min_inliers`` map tracks; ORB-SLAM's rule);
+3. keeps a candidate only when its place (the span of frames covisible with it) came back
+   in ``loop_consistency`` consecutive queries;
+4. verifies it geometrically (:func:`~eifslam.frontend.loop_verification.verify_place`:
+   PnP on the old map features seen around the candidate and a five-point check with the
+   candidate frame, both with chance-derived inlier counts, and the five-point rotation
+   within ``agree_rotation_deg`` of the rotation the PnP implies when the baseline has
+   the parallax a new feature needs);
+5. fuses the PnP inliers as ``Zm`` of the *old* map features in the current pose, not
+   gated (after drift the filter is overconfident about where it is: the loop is trusted
+   on its geometric verification alone), and recovers;
+6. merges the tracks of the inlier keypoints that are not map features yet into the old
+   features' tracks (:meth:`FrontEnd.join_tracks`), so that the following frames observe
+   the old features through ordinary tracking (their ``Zm`` gated as usual). Keypoints
+   whose tracks are already map features keep them: the filter does not merge two
+   feature states, so a place mapped twice keeps both copies, each with its own ``Zm``.
+
+Sparsity: each loop ``Zm`` couples the current pose with one old feature, so ``I`` gains
+exactly the pose-feature blocks of the verified inliers (nothing else fills in). Over the
+poses alone (features eliminated) the current pose becomes linked to every pose that saw
+those features, which is what moves the whole loop.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..estimation.measurements import FeatureObservations
+from ..estimation.statedict import sub, take
+from ..frontend.places import PlaceIndex
+from ..geometry.camera import PinholeCamera
+from .config import SlamConfig
+
+Array = NDArray[np.float64]
+
+__all__ = ["LoopCloser", "LoopClosure"]
+
+
+@dataclass
+class LoopClosure:
+    """One verified and fused loop (frame ids are input-frame indices).
+
+    Attributes
+    ----------
+    frame, matched_frame : int
+        The current frame and the old frame it was recognised as.
+    score : float
+        Bag-of-words similarity of the two.
+    matches, inliers, required : int
+        Descriptor matches to old map features, PnP inliers, inliers required.
+    five_point_inliers, five_point_required : int
+    fused : int
+        ``Zm`` of old features fused into the current pose.
+    correction_m, correction_deg : float
+        How far the PnP pose lies from the filter's pose of the frame before fusion.
+    """
+
+    frame: int
+    matched_frame: int
+    score: float
+    matches: int
+    inliers: int
+    required: int
+    five_point_inliers: int
+    five_point_required: int
+    fused: int
+    correction_m: float
+    correction_deg: float
+
+    def to_dict(self) -> dict:
+        """Plain JSON values."""
+        return {k: (float(v) if isinstance(v, float) else int(v)) for k, v in asdict(self).items()}
+
+
+_FIELDS = [f for f in LoopClosure.__dataclass_fields__]
+
+
+class LoopCloser:
+    """Loop detection and fusion for a :class:`~eifslam.system.slam.Slam`.
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+    config : SlamConfig
+    frontend : object
+        Needs ``descriptors``, ``frame``, ``map_observations`` and ``matcher`` (the OpenCV
+        front end); a front end without descriptors (the synthetic one) has no loop closure.
+    backend : object
+        The estimator.
+    mapper : Mapper
+        For the covisibility of map tracks.
+    """
+
+    def __init__(self, camera: PinholeCamera, config: SlamConfig, frontend, backend, mapper) -> None:
+        self.camera = camera
+        self.config = config
+        self.frontend = frontend
+        self.filter = backend
+        self.mapper = mapper
+        sysc = config.system
+        self.enabled = bool(sysc.loop_closure) and callable(getattr(frontend, "descriptors", None))
+        seed = config.frontend.seed if config.frontend.seed is not None else 0
+        self.index = PlaceIndex(sysc.loop_words, sysc.loop_train_frames, seed=int(seed))
+        self.closures: list[LoopClosure] = []
+        self.rejected: list[tuple[int, int, str]] = []  # (frame, candidate, why) verifications that failed
+        self._streak: list[tuple[int, int, int]] = []  # (lo, hi, count) places of the last query
+
+    # -- per frame ------------------------------------------------------------------
+    def process(self, k: int) -> LoopClosure | None:
+        """Seek, verify and fuse a loop for frame *k* (a pose of the filter, just fused)."""
+        if not self.enabled or not self.filter.layout.has_pose(k):
+            return None
+        desc = self.frontend.descriptors(k)
+        if desc is None or len(desc) < 2 or not self.index.add(k, desc):
+            return None
+        mids, _ = self.frontend.map_observations(k)
+        covis = self.mapper.covisible(mids)
+        covis.pop(k, None)
+        if not covis:
+            self._streak = []
+            return None
+        oldest = min(covis)
+        sysc = self.config.system
+        ids = np.array(self.index.frame_ids, np.int64)
+        scores = self.index.query(self.index.vector(k))
+        pos = {int(f): i for i, f in enumerate(ids)}
+        strong = [f for f, n in covis.items() if n >= sysc.loop_min_inliers and f in pos]
+        if not strong:
+            strong = [max(covis)] if max(covis) in pos else []
+        if not strong:
+            self._streak = []
+            return None
+        thr = min(scores[pos[f]] for f in strong)
+        cand = np.flatnonzero((ids < oldest) & (scores >= thr) & (scores > 0))
+        cand = [int(i) for i in cand[np.argsort(-scores[cand], kind="stable")] if self.filter.layout.has_pose(int(ids[i]))]
+        streak, best = [], None
+        for i in cand[:5]:
+            j = int(ids[i])
+            span = self.mapper.covisible(self.frontend.map_observations(j)[0])
+            lo, hi = (min(span), max(span)) if span else (j, j)
+            lo, hi = min(lo, j), max(hi, j)
+            n = 1 + max([c for a, b, c in self._streak if a <= hi and lo <= b], default=0)
+            streak.append((lo, hi, n))
+            if best is None and n >= sysc.loop_consistency:
+                best = (j, float(scores[i]), lo, hi)
+        self._streak = streak
+        if best is None:
+            return None
+        return self._verify_and_fuse(k, *best)
+
+    def _verify_and_fuse(self, k: int, j: int, score: float, lo: int, hi: int) -> LoopClosure | None:
+        from ..frontend.loop_verification import verify_place
+        from ..geometry.rotations import quat_conjugate, quat_log, quat_multiply, quat_to_rotmat
+
+        filt, fe, sysc = self.filter, self.frontend, self.config.system
+        filt.complete_estimate()
+        stored = set(fe.frame_ids)
+        tids, descs = [], []
+        for f in range(lo, hi + 1):  # the old map features seen around the candidate, with descriptors
+            d = fe.descriptors(f) if f in stored and filt.layout.has_pose(f) else None
+            if d is not None:
+                t = fe.frame(f).track_ids
+                has = filt.layout.has_features(t)
+                tids.append(t[has])
+                descs.append(d[has])
+        if not tids:
+            return None
+        t_all = np.concatenate(tids)
+        fids, first = np.unique(t_all, return_index=True)  # one descriptor per feature: its first
+        keep = ~np.isin(fids, fe.frame(k).track_ids)
+        if keep.sum() < sysc.loop_min_inliers:
+            self.rejected.append((k, j, "too few old map features"))
+            return None
+        fids = fids[keep].astype(np.int64)
+        D = np.concatenate(descs)[first[keep]]
+        X = filt.x[filt.layout.feature_columns(fids)]
+        fk, fj = fe.frame(k), fe.frame(j)
+        chk = verify_place(self.camera, fe.matcher, fk.uv, fe.descriptors(k), X, D, fj.uv, fe.descriptors(j),
+                           self.config.zm_sigma_px, filt.pose(j)[0], quat_to_rotmat(filt.pose(j)[1]),
+                           max_rot_deg=sysc.agree_rotation_deg, min_parallax_deg=sysc.feature_parallax_deg,
+                           floor=sysc.loop_min_inliers,
+                           alpha=sysc.loop_false_alarm)
+        if not chk.ok:
+            self.rejected.append((k, j, chk.reason))
+            return None
+        p_f, q_f = filt.pose(k)
+        dp = float(np.linalg.norm(chk.p - p_f))
+        dq = float(np.degrees(np.linalg.norm(quat_log(quat_multiply(quat_conjugate(q_f), chk.q)))))
+        obs = FeatureObservations.make(np.full(len(chk.keypoints), k), fids[chk.features], fk.uv[chk.keypoints],
+                                       self.config.zm_sigma_px)
+        fused = filt.fuse_features(obs, gate=False)
+        filt.recover_active()
+        if sysc.loop_smooth_passes:
+            # the loop's correction can be far from the linearisation point of the poses it
+            # moves: relinearise every stored measurement (paper III-E) a few passes, as
+            # ORB-SLAM optimises after a loop; the incremental window is rebuilt next step
+            from ..estimation.smoothing import smooth
+
+            filt.complete_estimate()
+            smooth(filt, sysc.loop_smooth_passes)
+            filt.set_estimate(filt.x.copy())
+        # track merging: keypoints whose tracks are not map features yet continue the old
+        # features' tracks, so the next frames observe the old features as usual (Zm, gated)
+        free = ~filt.layout.has_features(fk.track_ids[chk.keypoints])
+        fe.join_tracks(k, chk.keypoints[free], fids[chk.features][free])
+        lc = LoopClosure(k, j, score, chk.matches, chk.inliers, chk.required, chk.five_point_inliers,
+                         chk.five_point_required, len(fused), dp, dq)
+        self.closures.append(lc)
+        return lc
+
+    # -- sessions -------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """What a session keeps: the place index, the loops found and the last query's
+        candidate places."""
+        C = np.array([[getattr(c, f) for f in _FIELDS] for c in self.closures], float).reshape(-1, len(_FIELDS))
+        return {"index": self.index.state_dict(), "closures": C,
+                "streak": np.array(self._streak, np.int64).reshape(-1, 3)}
+
+    def load_state_dict(self, d) -> None:
+        """Restore :meth:`state_dict`, checked (:class:`~eifslam.errors.SessionError`)."""
+        self.index.load_state_dict(sub(d, "index"))
+        C = take(d, "closures", np.float64, (None, len(_FIELDS)))
+        ints = {"frame", "matched_frame", "matches", "inliers", "required", "five_point_inliers",
+                "five_point_required", "fused"}
+        self.closures = [LoopClosure(**{f: (int(v) if f in ints else float(v)) for f, v in zip(_FIELDS, row)})
+                         for row in C]
+        S = take(d, "streak", np.int64, (None, 3))
+        self._streak = [tuple(int(v) for v in row) for row in S]

@@ -1,0 +1,152 @@
+"""Loop closure (issue 13 item 2): the bag-of-words index finds a revisited frame, the
+geometric verification accepts a true place and refuses wrong associations, the built-in
+scene's second lap closes the loop with the right frames (and the first lap reports
+none), ``report.json`` lists the loops and ``--no-loop-closure`` turns it off."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from eifslam.frontend.loop_verification import min_inliers, verify_place
+from eifslam.frontend.places import PlaceIndex
+from eifslam.system.config import SlamConfig
+from eifslam.system.slam import Slam
+
+
+def _frames(rng: np.random.Generator, n_places: int, per: int, D: int = 32) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Float descriptors of ``n_places`` places: each place draws ``per`` descriptors near
+    its own subset of 40 of 400 prototypes."""
+    protos = rng.normal(0, 1, (400, D)).astype(np.float32)
+    places = [rng.choice(400, 40, replace=False) for _ in range(n_places)]
+    frames = [protos[rng.choice(p, per)] + rng.normal(0, 0.05, (per, D)).astype(np.float32) for p in places]
+    return protos, frames
+
+
+def test_place_index_finds_the_revisited_place_and_survives_a_session_round_trip():
+    rng = np.random.default_rng(1)
+    _, frames = _frames(rng, 30, 120)
+    idx = PlaceIndex(n_words=64, train_frames=10, per_frame=100, seed=0)
+    for k, F in enumerate(frames):
+        assert idx.add(k, F) == (k >= 9)
+    # frame 30 revisits place 7 (new draws from the same prototypes)
+    again = _frames(np.random.default_rng(1), 30, 120)[1][7]  # same places, same first draws ...
+    again = again + np.random.default_rng(5).normal(0, 0.05, again.shape).astype(np.float32)  # ... new noise
+    idx.add(30, again)
+    s = idx.scores(30, range(30))
+    assert int(np.argmax(s)) == 7 and s[7] > 1.5 * np.sort(s)[-2]
+    back = PlaceIndex(n_words=64, train_frames=10, per_frame=100, seed=0)
+    back.load_state_dict(idx.state_dict())
+    np.testing.assert_allclose(back.scores(30, range(30)), s)
+    back.add(31, frames[3])
+    idx.add(31, frames[3])
+    np.testing.assert_allclose(back.scores(31, range(31)), idx.scores(31, range(31)))
+    assert int(np.argmax(idx.scores(31, range(31)))) == 3
+
+
+def test_min_inliers_grows_with_the_matches_and_keeps_its_floor():
+    small = min_inliers(100, 1e-3, 1000, 1e-6, floor=6)
+    big = min_inliers(5000, 1e-3, 1000, 1e-6, floor=6)
+    assert 6 <= small < big < 5000 * 1e-3 * 5 + 50
+    assert min_inliers(100, 1e-3, 1000, 1e-6, floor=40) == 40
+    assert min_inliers(100, 0.5, 1000, 1e-6, floor=6) > 50  # chance explains half the matches
+
+
+def _view(rng, camera, R_wc, p, X):
+    Xc = (X - p) @ R_wc
+    uv = np.stack([camera.fx * Xc[:, 0] / Xc[:, 2] + camera.cx, camera.fy * Xc[:, 1] / Xc[:, 2] + camera.cy], 1)
+    return uv + rng.normal(0, 0.5, uv.shape)
+
+
+def test_verify_place_recovers_the_pose_and_refuses_wrong_associations():
+    from eifslam.frontend.matching import DescriptorMatcher
+    from eifslam.geometry.camera import PinholeCamera
+    from eifslam.geometry.rotations import quat_to_rotmat, rotvec_exp
+
+    rng = np.random.default_rng(3)
+    cam = PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)
+    X = np.column_stack([rng.uniform(-2, 2, 300), rng.uniform(-1.5, 1.5, 300), rng.uniform(4, 8, 300)])
+    desc = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+    R_k = rotvec_exp(np.array([0.02, -0.1, 0.01]))
+    p_k = np.array([0.3, -0.1, 0.2])
+    uv_k = _view(rng, cam, R_k, p_k, X)
+    uv_j = _view(rng, cam, np.eye(3), np.array([-0.4, 0.0, 0.0]), X)
+    m = DescriptorMatcher(0.8, True)
+    ok = verify_place(cam, m, uv_k, desc, X, desc, uv_j, desc, sigma_px=1.0, p_j=np.array([-0.4, 0.0, 0.0]),
+                      R_wc_j=np.eye(3), floor=20)
+    assert ok.ok and ok.inliers > 250 and ok.five_point_inliers > 250
+    assert 1e-5 < np.linalg.norm(ok.p - p_k) < 0.05
+    np.testing.assert_allclose(quat_to_rotmat(ok.q), R_k, atol=5e-3)
+    assert np.array_equal(np.sort(ok.keypoints), np.sort(ok.features))  # keypoint i observes feature i
+    # the same descriptors attached to the wrong map points: no pose explains them
+    bad = verify_place(cam, m, uv_k, desc, X[rng.permutation(300)], desc, uv_j, desc, sigma_px=1.0, p_j=np.array([-0.4, 0.0, 0.0]),
+                      R_wc_j=np.eye(3), floor=20)
+    assert not bad.ok and bad.reason in ("PnP failed", "too few PnP inliers")
+    # the right map, but an old frame of another place: the five-point check refuses it
+    other = verify_place(cam, m, uv_k, desc, X, desc, uv_j[rng.permutation(300)], desc, sigma_px=1.0, p_j=np.array([-0.4, 0.0, 0.0]),
+                      R_wc_j=np.eye(3), floor=20)
+    assert not other.ok and other.reason in ("too few five-point inliers",
+                                            "five-point rotation disagrees with the PnP")
+
+
+@pytest.fixture(scope="module")
+def two_laps():
+    """The built-in scene at 320x240, every third frame of the lap round the table and then
+    the first 21 frames again (re-observation off, so that only place recognition can join
+    the laps)."""
+    from eifslam.sim.scene import make_scene, render_frame
+
+    scene = make_scene(n_frames=54, width=320, height=240)
+    idx = list(range(0, 54, 3)) + list(range(0, 21, 3))
+    cfg = SlamConfig.from_dict({"system": {"reobserve_radius_px": 0.0, "mode": "filter", "loop_closure": True}})
+    slam = Slam(scene.camera, cfg)
+    for n, k in enumerate(idx):
+        slam.track(render_frame(scene, k), float(n))
+    return scene, idx, slam
+
+
+def test_the_second_lap_closes_the_loop_with_the_right_frames(two_laps):
+    scene, idx, slam = two_laps
+    lap = 18  # frames of the first lap
+    assert all(r.position is not None for r in slam.results)
+    loops = slam.loop_closures
+    assert len(loops) >= 1
+    for c in loops:
+        assert c.frame >= lap > c.matched_frame  # nothing in the first lap: no revisit there
+        gap = abs(idx[c.frame] - idx[c.matched_frame]) % 54
+        assert min(gap, 54 - gap) <= 6  # the two frames see the same part of the table
+        assert c.inliers >= c.required >= slam.config.system.loop_min_inliers and c.fused == c.inliers
+    # after the loop the second lap lies on the first: the pose at the revisit agrees with
+    # the pose of the same scene frame in the first lap
+    c = loops[0]
+    d = np.linalg.norm(slam.T_wc(c.frame)[:3, 3] - slam.T_wc(idx.index(idx[c.frame]))[:3, 3])
+    assert d < 0.05 * float(np.linalg.norm(np.ptp(scene.positions, axis=0)))
+
+
+def test_report_lists_loops_and_the_option_turns_loop_closure_off(tmp_path):
+    from eifslam.cli.main import main as cli_main
+
+    from test_slam import _tiny_folder
+
+    d = _tiny_folder(tmp_path, 3)
+    for flag, on in (([], False), (["--loop-closure"], True), (["--no-loop-closure"], False)):
+        out = tmp_path / f"out{len(flag)}{on}"
+        assert cli_main(["run", str(d), "--out", str(out), "--no-html", "-q", *flag]) == 0
+        rep = json.loads((out / "report.json").read_text())
+        assert rep["loop_closures"] == [] and rep["config"]["system"]["loop_closure"] is on
+    from eifslam.sim.scene import make_scene
+
+    assert not Slam(make_scene().camera, SlamConfig().replace(system={"loop_closure": False})).loops.enabled
+
+
+def test_the_loop_closer_state_survives_a_session_round_trip(two_laps):
+    from eifslam.system.loops import LoopCloser
+
+    scene, idx, slam = two_laps
+    back = LoopCloser(slam.camera, slam.config, slam.frontend, slam.filter, slam.mapper)
+    back.load_state_dict(slam.loops.state_dict())
+    assert back.closures == slam.loops.closures and back.index.frame_ids == slam.loops.index.frame_ids
+    k = idx.index(9, 18)  # the second visit of scene frame 9
+    np.testing.assert_allclose(back.index.scores(k, range(k)), slam.loops.index.scores(k, range(k)))
