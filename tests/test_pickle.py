@@ -35,8 +35,11 @@ def test_pickle_round_trip_recovers_the_same_state(recovery):
     assert (g.information_matrix() != f.information_matrix()).nnz == 0
     assert np.allclose(g.x, f.complete_estimate(), rtol=0, atol=1e-12)
     assert np.array_equal(g.recover(), f.recover())
-    C = g.pose_covariance(3)
-    assert np.allclose(C, f.pose_covariance(3), rtol=1e-9, atol=0)
+    C, D = g.pose_covariance(3), f.pose_covariance(3)
+    # the unpickled window is rebuilt (another elimination order of the same matrix): equal
+    # to rounding, judged against the block's scale (a small off-diagonal entry differed by
+    # 2e-9 of itself, 1e-13 of the block, once new features were refined on every view)
+    assert np.allclose(C, D, rtol=1e-9, atol=1e-9 * np.abs(D).max())
 
 
 def test_unpickled_incremental_recovery_rebuilds_and_continues():
