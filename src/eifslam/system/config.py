@@ -66,6 +66,13 @@ class SystemConfig:
         A ``ZR``/``ZT`` pair whose normalised innovation squared (5 DOF) at the pose the
         known map supports exceeds this is not fused (a wrong five-point solution or an
         overconfident covariance); ``None`` fuses every pair.
+    relative_gate_pose_uncertainty : bool
+        Test a ``ZR``/``ZT`` against its covariance plus both poses' uncertainty
+        (:func:`~eifslam.system.tracking.relative_gate_statistic`) instead of its
+        covariance alone. Off by default: it brings the synthetic filter's mean NEES closer
+        to its interval (50 runs of 10 frames: 9.5 -> 7.9) but admits relative poses that
+        cost accuracy on real images (filter ATE, seed 0, SIFT: 7scenes-redkitchen-a
+        0.050 -> 0.059 m, kitti-07 0.236 -> 0.250 m).
     robust_smoothing : bool
         After its passes, smoothing drops the ``ZR``/``ZT`` that fail
         ``relative_gate_chi2`` (worst first), then the ``Zm`` that fail the filter's
@@ -173,6 +180,7 @@ class SystemConfig:
     recovery: Recovery = Recovery.INCREMENTAL
     window: int = 5
     relative_gate_chi2: float | None = 50.0
+    relative_gate_pose_uncertainty: bool = False
     robust_smoothing: bool = True
     reobserve_radius_px: float | None = None
     relocalise_top: int = 5
@@ -213,6 +221,9 @@ class SystemConfig:
         v = self.loop_false_alarm
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 < v < 1.0:
             raise ConfigError(f"system.loop_false_alarm must lie in (0, 1), got {v!r}")
+        if not isinstance(self.relative_gate_pose_uncertainty, bool):
+            raise ConfigError("system.relative_gate_pose_uncertainty must be true or false, "
+                              f"got {self.relative_gate_pose_uncertainty!r}")
         if not isinstance(self.keyframes, bool):
             raise ConfigError(f"system.keyframes must be true or false, got {self.keyframes!r}")
         if self.keyframe_parallax_deg is not None:

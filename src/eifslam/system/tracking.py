@@ -56,7 +56,7 @@ def agrees(p_i: Array, p_k: Array, q_k: Array, sol, max_rot_deg: float, max_dir_
     return bool(rot <= max_rot_deg and cosang >= np.cos(np.radians(max_dir_deg)) and inl.mean() >= 0.5)
 
 
-def relative_gate_statistic(filt, rp, cov_j: Array | None) -> float:
+def relative_gate_statistic(filt, rp, cov_j: Array | None, poses: bool = True) -> float:
     """Normalised innovation squared of a ``ZR``/``ZT`` against its innovation covariance.
 
     ``S = R + J_i P_i J_i^T + J_j P_j J_j^T``: the measurement's covariance plus the
@@ -64,11 +64,15 @@ def relative_gate_statistic(filt, rp, cov_j: Array | None) -> float:
     and pose *j* as localised on the map (``cov_j``, 6x6 ``[p, dtheta]``; None leaves it
     out). Testing against ``R`` alone refuses correct measurements whenever the poses are
     less certain than the measurement, and keeps only those that agree with the current
-    estimate: the filter then confirms itself and grows overconfident.
+    estimate: the filter then confirms itself and grows overconfident. ``poses=False``
+    gives the statistic against ``R`` alone (the system's default gate,
+    ``system.relative_gate_pose_uncertainty``).
     """
     from ..geometry.rotations import quat_left_matrix
 
     _, J, W, innov = filt.linearise_relative([rp])
+    if not poses:  # the measurement's covariance alone (system.relative_gate_pose_uncertainty off)
+        return float(innov[0] @ W[0] @ innov[0])
     S = np.linalg.inv(W[0])
     for blk, fid, C in ((slice(0, 7), rp.i, filt.pose_covariance(rp.i)), (slice(7, 14), rp.j, cov_j)):
         if C is None:
@@ -238,7 +242,8 @@ class Tracker:
         if use_relative and refined and sysc.relative_gate_chi2 is not None:
             # ZR/ZT against the pose the map supports, with both poses' uncertainty: an
             # inconsistent one is not fused
-            if relative_gate_statistic(filt, rp, cov_k) > sysc.relative_gate_chi2:
+            if relative_gate_statistic(filt, rp, cov_k if sysc.relative_gate_pose_uncertainty else None,
+                                       sysc.relative_gate_pose_uncertainty) > sysc.relative_gate_chi2:
                 use_relative = False
                 self.rejected_relative.append(rp)
         if use_relative:
