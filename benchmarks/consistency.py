@@ -23,7 +23,7 @@ Writes ``DIR/consistency.json``::
 and ``DIR/consistency.png`` (mean NEES against frame, with the interval).
 
     python benchmarks/consistency.py --out out/consistency            # 50 runs x 50 frames
-    python benchmarks/consistency.py --out /tmp/c --runs 5 --frames 20 # quick look
+    python benchmarks/consistency.py --out out/consistency --runs 5 --frames 20 # quick look
 """
 
 from __future__ import annotations

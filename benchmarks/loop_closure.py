@@ -4,7 +4,7 @@ Usage::
 
     python benchmarks/loop_closure.py --data ../shared/datasets --out out/loops
     python benchmarks/loop_closure.py --data ../shared/datasets --out out/loops --only 7scenes-redkitchen-a
-    python benchmarks/loop_closure.py --data /work/data --only loopworld --features orb --out out/lw
+    python benchmarks/loop_closure.py --data out --only loopworld --features orb --out out/lw  # after eifslam render --scene loop --out out/loopworld
 
 For each data set under ``--data`` (the sub-folders with ``images/``) SLAM runs in filter
 mode twice, as ``eifslam run --mode filter`` and ``eifslam run --mode filter

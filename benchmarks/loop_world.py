@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/loop_world.py --data /work/data/loopworld --out out/loop_world
+    python benchmarks/loop_world.py --data out/loopworld --out out/loop_world
     python benchmarks/loop_world.py --data out/lw --out out/lw-bench --detectors orb,sift --mode filter
     python benchmarks/loop_world.py --data out/lw --out out/lw-bench --run-args="--no-loop-closure"
 

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_benchmark_scripts import _tiny_dataset
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -52,26 +53,9 @@ def test_parse_settings():
         realtime.parse_settings(["nokey"])
 
 
-def _tiny_dataset(root: Path, n: int = 5) -> Path:
-    """Render the first ``n`` frames of a small built-in scene into a data folder."""
-    import cv2
-
-    from eifslam.io import write_camera_yaml, write_tum
-    from eifslam.sim.scene import make_scene, render_frame
-
-    scene = make_scene(n_frames=54, width=320, height=240)
-    (root / "images").mkdir(parents=True)
-    for k in range(n):
-        assert cv2.imwrite(str(root / "images" / f"{k:06d}.png"), render_frame(scene, k))
-    write_camera_yaml(root / "camera.yaml", scene.camera)
-    (root / "times.txt").write_text("".join(f"{t:.6f}\n" for t in scene.timestamps[:n]))
-    write_tum(root / "groundtruth.tum", scene.timestamps[:n], scene.positions[:n], scene.quats_wxyz[:n])
-    return root
-
-
 def test_realtime_smoke(tmp_path, capsys):
     data = tmp_path / "data"
-    _tiny_dataset(data / "tiny")
+    _tiny_dataset(data / "tiny", 5)
     out = tmp_path / "out"
     rc = realtime.main(["--data", str(data), "--out", str(out), "--only", "tiny,nope", "--detectors", "sift",
                         "--smooth", "--set", "max_features=500", "--tag", "t"])

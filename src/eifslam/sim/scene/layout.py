@@ -34,6 +34,7 @@ from ...geometry.rotations import quat_to_rotmat, rotmat_to_quat
 Array = NDArray[np.float64]
 
 __all__ = [
+    "scene_camera",
     "Box",
     "Surface",
     "BuiltinScene",
@@ -341,6 +342,29 @@ def _trajectory(n_frames: int, rng: np.random.Generator) -> tuple[Array, Array]:
     return p, R
 
 
+def scene_camera(n_frames: int, width: int, height: int, hfov_deg: float, frame_interval: float) -> PinholeCamera:
+    """The pinhole camera of a built-in scene (square pixels, principal point at the image
+    centre), after checking the scene's size settings.
+
+    Raises
+    ------
+    ConfigError
+        Fewer than 2 frames, an image under 16x16, a field of view outside [10, 150]
+        degrees or a non-positive frame interval (s).
+    """
+    if int(n_frames) < 2:
+        raise ConfigError(f"n_frames must be at least 2, got {n_frames}")
+    if int(width) < 16 or int(height) < 16:
+        raise ConfigError(f"image size must be at least 16x16, got {width}x{height}")
+    if not 10.0 <= float(hfov_deg) <= 150.0:
+        raise ConfigError(f"hfov_deg must be in [10, 150], got {hfov_deg}")
+    if not frame_interval > 0:
+        raise ConfigError(f"frame_interval must be positive, got {frame_interval}")
+    f = 0.5 * width / np.tan(np.radians(0.5 * hfov_deg))
+    cam = PinholeCamera(float(f), float(f), 0.5 * (width - 1), 0.5 * (height - 1), int(width), int(height))
+    return cam
+
+
 def make_scene(n_frames: int = 54, width: int = 1024, height: int = 768,
                hfov_deg: float = 56.0, seed: int = 0, frame_interval: float = 0.5) -> BuiltinScene:
     """Build the built-in scene (geometry and exact ground truth; no pixels).
@@ -369,16 +393,7 @@ def make_scene(n_frames: int = 54, width: int = 1024, height: int = 768,
     >>> s.n_frames, round(s.camera.hfov_deg, 6), round(s.box_ratio_true, 6)
     (54, 56.0, 0.8)
     """
-    if int(n_frames) < 2:
-        raise ConfigError(f"n_frames must be at least 2, got {n_frames}")
-    if int(width) < 16 or int(height) < 16:
-        raise ConfigError(f"image size must be at least 16x16, got {width}x{height}")
-    if not 10.0 <= float(hfov_deg) <= 150.0:
-        raise ConfigError(f"hfov_deg must be in [10, 150], got {hfov_deg}")
-    if not frame_interval > 0:
-        raise ConfigError(f"frame_interval must be positive, got {frame_interval}")
-    f = 0.5 * width / np.tan(np.radians(0.5 * hfov_deg))
-    cam = PinholeCamera(float(f), float(f), 0.5 * (width - 1), 0.5 * (height - 1), int(width), int(height))
+    cam = scene_camera(n_frames, width, height, hfov_deg, frame_interval)
     boxes = []
     for name, x, y, yaw_deg, w, l, h in _BOX_SPECS:
         yaw = float(np.radians(yaw_deg))

@@ -35,9 +35,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import ConfigError
-from ...geometry.camera import PinholeCamera
 from ...geometry.rotations import rotmat_to_quat
-from .layout import BuiltinScene, Surface, look_at
+from .layout import BuiltinScene, Surface, look_at, scene_camera
 from .photos import cell_size, poster_cells
 
 Array = NDArray[np.float64]
@@ -269,16 +268,7 @@ def make_loop_scene(n_frames: int = 1040, n_laps: int = 2, width: int = 640, hei
     """
     if int(n_laps) < 1:
         raise ConfigError(f"n_laps must be at least 1, got {n_laps}")
-    if int(n_frames) < 2:
-        raise ConfigError(f"n_frames must be at least 2, got {n_frames}")
-    if int(width) < 16 or int(height) < 16:
-        raise ConfigError(f"image size must be at least 16x16, got {width}x{height}")
-    if not 10.0 <= float(hfov_deg) <= 150.0:
-        raise ConfigError(f"hfov_deg must be in [10, 150], got {hfov_deg}")
-    if not frame_interval > 0:
-        raise ConfigError(f"frame_interval must be positive, got {frame_interval}")
-    f = 0.5 * width / np.tan(np.radians(0.5 * hfov_deg))
-    cam = PinholeCamera(float(f), float(f), 0.5 * (width - 1), 0.5 * (height - 1), int(width), int(height))
+    cam = scene_camera(n_frames, width, height, hfov_deg, frame_interval)
     rng = np.random.default_rng(seed)
     cells = poster_cells()
     cells = [cells[i] for i in rng.permutation(len(cells))]
