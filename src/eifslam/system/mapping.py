@@ -146,16 +146,19 @@ class Mapper:
             return 0
         return self.frontend.reobserve(k, fids[vis], h[vis], r)
 
-    def fuse_and_recover(self, k: int, t0: float, timings: dict[str, float]) -> None:
+    def fuse_and_recover(self, k: int, t0: float, timings: dict[str, float], recover: bool = True) -> None:
         """Algorithm 1 steps 3-5 for a frame whose pose is in the state: new features,
         fuse every ``Zm``, recover; ``t0`` is when initialisation started (for the
-        ``init``, ``fuse`` and ``recover`` entries of ``timings``, milliseconds)."""
+        ``init``, ``fuse`` and ``recover`` entries of ``timings``, milliseconds).
+        ``recover=False`` leaves the recovery to the caller (one recovery after placing
+        several earlier frames, :meth:`Slam.retry_lost`)."""
         ids, uv = self.record_observations(k)
         batch = self.new_features(k, ids, uv)
         t1 = time.perf_counter()
         self.filter.fuse_features(batch)
         t2 = time.perf_counter()
-        self.filter.recover_active()
+        if recover:
+            self.filter.recover_active()
         t3 = time.perf_counter()
         timings.update(init=1e3 * (t1 - t0), fuse=1e3 * (t2 - t1), recover=1e3 * (t3 - t2))
 

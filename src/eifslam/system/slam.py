@@ -283,23 +283,47 @@ class Slam:
         """Frames (after the first) that have no pose, in frame order."""
         return [r.frame_id for r in self.results if r.frame_id > 0 and r.position is None]
 
-    def _retry(self, j: int, reason: str, relative: bool = True) -> bool:
-        """Localise an earlier frame *j* that has no pose (:meth:`Tracker.place_late`). On
-        success the frame's :class:`TrackResult` is updated in place (``reason`` says why
-        it was late)."""
-        timings: dict[str, float] = {}
-        try:
-            placed, ref = self.tracker.place_late(j, relative, timings)
-        except EstimatorError:
-            return False
+    def _place_late(self, frames: list[int], reason: str, relative: bool = True) -> int:
+        """Localise earlier frames that have no pose (:meth:`Tracker.place_late`), in the
+        given order, then recover once for all of them (each placement alone would recover
+        the old states it touches: a rebuild of the recovery window per frame). The
+        :class:`TrackResult` of each frame placed is updated in place (``reason`` says why
+        it was late). Returns how many were placed."""
+        placed: list[tuple[int, int | None, dict[str, float]]] = []
+        for j in frames:
+            timings: dict[str, float] = {}
+            try:
+                ok, ref = self.tracker.place_late(j, relative, timings, recover=False)
+            except EstimatorError:
+                continue
+            if ok:
+                placed.append((j, ref, timings))
         if not placed:
-            return False
-        p, q = self.filter.pose(j)
-        old = self.results[j]
-        self.results[j] = TrackResult(j, old.timestamp, TrackingState.TRACKING, p, q, self.filter.pose_covariance(j),
-                                      reason=reason, reference=ref, timings_ms={**old.timings_ms, **timings},
-                                      map_features=self.filter.layout.n_features, state_dim=self.filter.dim)
-        return True
+            return 0
+        t0 = time.perf_counter()
+        self.filter.recover_active()
+        recover_ms = 1e3 * (time.perf_counter() - t0) / len(placed)
+        for j, ref, timings in placed:
+            p, q = self.filter.pose(j)
+            old = self.results[j]
+            timings["recover"] = recover_ms  # the shared recovery, per frame placed
+            self.results[j] = TrackResult(j, old.timestamp, TrackingState.TRACKING, p, q,
+                                          self.filter.pose_covariance(j), reason=reason, reference=ref,
+                                          timings_ms={**old.timings_ms, **timings},
+                                          map_features=self.filter.layout.n_features, state_dim=self.filter.dim)
+        return len(placed)
+
+    def _unplaced_initial(self, k: int) -> list[int]:
+        """Frames that waited for the first baseline and that the young map could not
+        place yet, nearest to frame *k* first; they are retried at keyframes for as many
+        frames again as the initialisation took (then at :meth:`retry_lost`)."""
+        first = next((r.frame_id for r in self.results if r.frame_id > 0 and r.position is not None
+                      and r.state is TrackingState.TRACKING and r.reference is not None), None)
+        if first is None or k > 2 * first:
+            return []
+        return sorted((r.frame_id for r in self.results
+                       if r.frame_id > 0 and r.position is None and r.state is TrackingState.INITIALISING),
+                      reverse=True)
 
     def _lost_state(self) -> TrackingState:
         return TrackingState.INITIALISING if self.filter.layout.n_poses < 2 else TrackingState.LOST
@@ -322,9 +346,15 @@ class Slam:
             # nearest to the new frame first (they share the most features with it), from
             # the map only (a waiting frame is on a short baseline to its neighbours and its
             # ZR/ZT would be poor; retry_lost() tries relative poses at the end)
-            for j in sorted(self._waiting, reverse=True):
-                self._retry(j, "localised once the map was initialised (waited for a baseline)", relative=False)
+            self._place_late(sorted(self._waiting, reverse=True),
+                             "localised once the map was initialised (waited for a baseline)", relative=False)
             self._waiting = []
+        elif res.state is TrackingState.TRACKING and res.keyframe and self.filter.layout.n_poses >= 2:
+            # the first map is small (few features have the parallax yet): the frames it
+            # could not place are tried again at the next keyframes, as the map grows
+            late = self._unplaced_initial(res.frame_id)
+            if late:
+                self._place_late(late, "localised once the map had grown (waited for a baseline)", relative=False)
         res.timings_ms["total"] = 1e3 * (time.perf_counter() - t0)
         res.map_features = self.filter.layout.n_features
         res.state_dim = self.filter.dim
@@ -339,13 +369,11 @@ class Slam:
         if self.filter.layout.n_poses < 2:
             return 0
         for n in range(max_passes):  # the map first; relative poses once the map is exhausted
-            new = sum(self._retry(j, "localised after the run, against the final map", relative=n > 0)
-                      for j in self._untracked())
+            new = self._place_late(self._untracked(), "localised after the run, against the final map",
+                                   relative=n > 0)
             added += new
             if new == 0 and n > 0:
                 break
-        if added:
-            self.filter.recover_active()
         return added
 
     def smooth(self, max_passes: int | None = None) -> SmoothingReport:

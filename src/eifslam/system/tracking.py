@@ -183,9 +183,10 @@ class Tracker:
         X = filt.x[filt.layout.feature_columns(ids[known])] if known.any() else np.zeros((0, 3))
         return known, X, uv[known]
 
-    def localise_from_map(self, k: int, timings: dict[str, float]) -> bool:
+    def localise_from_map(self, k: int, timings: dict[str, float], recover: bool = True) -> bool:
         """Add frame *k* from ``Zm`` of known map features alone (no usable baseline);
-        False when there are too few of them or the pose does not converge."""
+        False when there are too few of them or the pose does not converge.
+        ``recover=False``: fuse without the recovery (the caller recovers once)."""
         filt = self.filter
         if filt.layout.n_poses < 2 or filt.layout.n_features == 0:
             return False
@@ -200,12 +201,14 @@ class Tracker:
         p, q, _ = sol
         self.mapper.reobserve(k, p, q)
         filt.add_pose(k, p, q)
-        self.mapper.fuse_and_recover(k, t0, timings)
+        self.mapper.fuse_and_recover(k, t0, timings, recover)
         return True
 
-    def localise_and_fuse(self, k: int, rpr: RelativePoseResult, timings: dict[str, float]) -> None:
+    def localise_and_fuse(self, k: int, rpr: RelativePoseResult, timings: dict[str, float],
+                          recover: bool = True) -> None:
         """Algorithm 1 for frame *k* related to a known pose by ``rpr``: initial guesses,
-        augment with zeros, fuse ``ZR``/``ZT`` (unless gated out) and ``Zm``, recover."""
+        augment with zeros, fuse ``ZR``/``ZT`` (unless gated out) and ``Zm``, recover
+        (unless ``recover`` is False: the caller recovers once)."""
         filt, sysc = self.filter, self.config.system
         rp = rpr.measurement
         t0 = time.perf_counter()
@@ -248,11 +251,13 @@ class Tracker:
                 self.rejected_relative.append(rp)
         if use_relative:
             filt.fuse_relative([rp])
-        self.mapper.fuse_and_recover(k, t0, timings)
+        self.mapper.fuse_and_recover(k, t0, timings, recover)
 
-    def place_late(self, j: int, relative: bool, timings: dict[str, float]) -> tuple[bool, int | None]:
+    def place_late(self, j: int, relative: bool, timings: dict[str, float],
+                   recover: bool = True) -> tuple[bool, int | None]:
         """Localise an earlier frame *j* that has no pose: from the map alone, else (with
-        ``relative``) from a relative pose to the nearest known poses.
+        ``relative``) from a relative pose to the nearest known poses. ``recover=False``
+        fuses it without the recovery (the caller recovers once for several frames).
 
         The step length between consecutive frames (the scale guess of the next frame)
         is left as it was. Raises :class:`~eifslam.errors.EstimatorError` as
@@ -266,14 +271,14 @@ class Tracker:
         """
         last_step = self._last_step
         try:
-            if self.localise_from_map(j, timings):
+            if self.localise_from_map(j, timings, recover):
                 return True, None
             if not relative:
                 return False, None
             rp, _ = self.find_reference(j, timings, relocalise=False)
             if rp is None:
                 return False, None
-            self.localise_and_fuse(j, rp, timings)
+            self.localise_and_fuse(j, rp, timings, recover)
             return True, rp.measurement.i
         finally:
             self._last_step = last_step  # the step between consecutive frames, not this one's
