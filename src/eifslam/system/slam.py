@@ -14,6 +14,7 @@ to any known pose.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -283,13 +284,15 @@ class Slam:
         """Frames (after the first) that have no pose, in frame order."""
         return [r.frame_id for r in self.results if r.frame_id > 0 and r.position is None]
 
-    def _retry(self, j: int, reason: str, relative: bool = True) -> bool:
-        """Localise an earlier frame *j* that has no pose (:meth:`Tracker.place_late`). On
-        success the frame's :class:`TrackResult` is updated in place (``reason`` says why
-        it was late)."""
+    def _retry(self, j: int, reason: str, relative: bool = True, wide=None) -> bool:
+        """Localise an earlier frame *j* that has no pose (:meth:`Tracker.place_late`, or
+        :meth:`Tracker.place_wide` with the wide-baseline matches ``wide``). On success
+        the frame's :class:`TrackResult` is updated in place (``reason`` says why it was
+        late)."""
         timings: dict[str, float] = {}
         try:
-            placed, ref = self.tracker.place_late(j, relative, timings)
+            placed, ref = self.tracker.place_late(j, relative, timings) if wide is None \
+                else self.tracker.place_wide(j, wide, timings)
         except EstimatorError:
             return False
         if not placed:
@@ -331,21 +334,51 @@ class Slam:
         return res
 
     # -- after the run ------------------------------------------------------------
-    def retry_lost(self, max_passes: int = 3) -> int:
+    def retry_lost(self, max_passes: int = 3, images: Callable[[int], np.ndarray] | None = None) -> int:
         """Give every frame without a pose one more chance against the final map (an
         offline step, the first of :meth:`finish`): frames lost on the way, and frames
-        that waited for the first baseline. Returns how many frames it added."""
+        that waited for the first baseline. With ``system.wide_baseline`` and ``images``
+        (frame id -> the image given to :meth:`track`), the frames still without a pose
+        are then matched with affine-simulated features to their nearest known frames
+        (:mod:`~eifslam.frontend.wide`), and their neighbours retried after each one
+        placed. Returns how many frames it added."""
         added = 0
         if self.filter.layout.n_poses < 2:
             return 0
-        for n in range(max_passes):  # the map first; relative poses once the map is exhausted
-            new = sum(self._retry(j, "localised after the run, against the final map", relative=n > 0)
-                      for j in self._untracked())
-            added += new
-            if new == 0 and n > 0:
-                break
+        added += self._retry_passes(max_passes, first_map_only=True)
+        sysc = self.config.system
+        if images is not None and sysc.wide_baseline:
+            from ..frontend.wide import WideBaselineMatcher
+
+            matcher = WideBaselineMatcher(self.camera, self.frontend.config, sysc.wide_baseline_max_tilt)
+            tried: set[int] = set()
+            while True:
+                todo = [j for j in self._untracked() if j not in tried]
+                if not todo:
+                    break
+                j = todo[0]
+                tried.add(j)
+                for ref in self.tracker.nearest_known(j)[: sysc.wide_baseline_references]:
+                    wide = matcher.relate(self.frontend, ref, images(ref), j, images(j))
+                    if self._retry(j, f"localised after the run by wide-baseline matching to frame {ref} "
+                                      f"({len(wide.uv)} affine matches)", wide=wide):
+                        added += 1 + self._retry_passes(max_passes, first_map_only=False)
+                        break
         if added:
             self.filter.recover_active()
+        return added
+
+    def _retry_passes(self, max_passes: int, first_map_only: bool) -> int:
+        """Passes of :meth:`_retry` over the frames without a pose until one adds none
+        (the first against the map alone when ``first_map_only``); how many it added."""
+        added = 0
+        for n in range(max_passes):  # the map first; relative poses once the map is exhausted
+            new = sum(self._retry(j, "localised after the run, against the final map",
+                                  relative=n > 0 or not first_map_only)
+                      for j in self._untracked())
+            added += new
+            if new == 0 and (n > 0 or not first_map_only):
+                break
         return added
 
     def smooth(self, max_passes: int | None = None) -> SmoothingReport:
@@ -367,11 +400,12 @@ class Slam:
         self.bundle_adjustment = bundle_adjust_slam(self, config)
         return self.bundle_adjustment
 
-    def finish(self, retry: bool = True) -> FinishReport:
+    def finish(self, retry: bool = True, images: Callable[[int], np.ndarray] | None = None) -> FinishReport:
         """End a run as ``system.mode`` says (what ``eifslam run`` does after the last image).
 
         First every frame without a pose gets one more chance (:meth:`retry_lost`, unless
-        ``retry`` is False); then mode ``smooth`` smooths (:meth:`smooth`) and mode ``ba``
+        ``retry`` is False; ``images`` as there: frame id -> image, for the wide-baseline
+        matching of ``system.wide_baseline``); then mode ``smooth`` smooths (:meth:`smooth`) and mode ``ba``
         bundle-adjusts (:meth:`bundle_adjust`); mode ``filter`` keeps the filter's
         estimate. A step that fails is recorded in the report and the estimate so far is
         kept (the run is not lost).
@@ -379,7 +413,7 @@ class Slam:
         rep = FinishReport()
         if retry:
             try:
-                rep.added = self.retry_lost()
+                rep.added = self.retry_lost(images=images)
             except EifslamError as exc:
                 rep.retry_error = str(exc)
         if self.filter.layout.n_poses < 2:

@@ -18,6 +18,7 @@ from ..estimation.initialisation import pose_from_relative
 from ..estimation.localisation import localise_pose, map_pose_covariance
 from ..estimation.measurements import pack_relative, unpack_relative
 from ..estimation.statedict import sub, take_float
+from ..frontend.relative_pose import estimate_relative_pose
 from ..frontend.results import RelativePoseResult
 from ..geometry.camera import PinholeCamera
 from .config import SlamConfig
@@ -277,3 +278,27 @@ class Tracker:
             return True, rp.measurement.i
         finally:
             self._last_step = last_step  # the step between consecutive frames, not this one's
+
+    def place_wide(self, j: int, wide, timings: dict[str, float]) -> tuple[bool, int | None]:
+        """Localise an earlier frame *j* that has no pose from wide-baseline matches to a
+        known frame (:class:`~eifslam.frontend.wide.WideMatch`): the relative pose of
+        those matches, its scale from the map features their joined tracks made visible;
+        else the map alone. The step length is left as it was, as in :meth:`place_late`.
+
+        Returns
+        -------
+        placed : bool
+        reference : int or None
+            The reference pose of the relative pose used (None: placed on the map).
+        """
+        last_step = self._last_step
+        try:
+            rpr = estimate_relative_pose(wide.uv_ref, wide.uv, self.camera, self.frontend.config,
+                                         wide.reference, j)
+            timings["relative_pose"] = timings.get("relative_pose", 0.0) + rpr.timings_ms.get("relative_pose", 0.0)
+            if rpr.ok:
+                self.localise_and_fuse(j, rpr, timings)
+                return True, wide.reference
+            return self.localise_from_map(j, timings), None
+        finally:
+            self._last_step = last_step
