@@ -358,12 +358,14 @@ class Slam:
                     break
                 j = todo[0]
                 tried.add(j)
-                for ref in self.tracker.nearest_known(j)[: sysc.wide_baseline_references]:
-                    wide = matcher.relate(self.frontend, ref, images(ref), j, images(j))
-                    if self._retry(j, f"localised after the run by wide-baseline matching to frame {ref} "
-                                      f"({len(wide.uv)} affine matches)", wide=wide):
-                        added += 1 + self._retry_passes(max_passes, first_map_only=False)
-                        break
+                # join the tracks of every reference first (more known map features), then
+                # place the frame (on the map; else from the best reference's relative pose)
+                refs = self.tracker.nearest_known(j)[: sysc.wide_baseline_references]
+                wides = [matcher.relate(self.frontend, ref, images(ref), j, images(j)) for ref in refs]
+                best = max(wides, key=lambda w: len(w.uv))
+                if self._retry(j, f"localised after the run by wide-baseline matching to frame {best.reference} "
+                                  f"({len(best.uv)} affine matches)", wide=best):
+                    added += 1 + self._retry_passes(max_passes, first_map_only=False)
         if added:
             self.filter.recover_active()
         return added

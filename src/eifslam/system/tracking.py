@@ -184,18 +184,23 @@ class Tracker:
         X = filt.x[filt.layout.feature_columns(ids[known])] if known.any() else np.zeros((0, 3))
         return known, X, uv[known]
 
-    def localise_from_map(self, k: int, timings: dict[str, float]) -> bool:
+    def localise_from_map(self, k: int, timings: dict[str, float], guess: tuple[Array, Array] | None = None,
+                          min_features: int | None = None) -> bool:
         """Add frame *k* from ``Zm`` of known map features alone (no usable baseline);
-        False when there are too few of them or the pose does not converge."""
+        False when there are too few of them or the pose does not converge.
+
+        ``guess`` (position, ``q_wc``) starts the localisation (default: the nearest
+        known pose); ``min_features`` overrides ``system.min_map_features``."""
         filt = self.filter
         if filt.layout.n_poses < 2 or filt.layout.n_features == 0:
             return False
         t0 = time.perf_counter()
         known, X, uv = self._known_map(k)
-        if known.sum() < self.config.system.min_map_features:
+        n_min = self.config.system.min_map_features if min_features is None else int(min_features)
+        if known.sum() < n_min:
             return False
-        p0, q0 = filt.pose(self.nearest_known(k)[0])
-        sol = localise_pose(self.camera, p0, q0, X, uv)
+        p0, q0 = filt.pose(self.nearest_known(k)[0]) if guess is None else guess
+        sol = localise_pose(self.camera, p0, q0, X, uv, min_inliers=min(n_min, 12))
         if sol is None:
             return False
         p, q, _ = sol
@@ -281,9 +286,9 @@ class Tracker:
 
     def place_wide(self, j: int, wide, timings: dict[str, float]) -> tuple[bool, int | None]:
         """Localise an earlier frame *j* that has no pose from wide-baseline matches to a
-        known frame (:class:`~eifslam.frontend.wide.WideMatch`): the relative pose of
-        those matches, its scale from the map features their joined tracks made visible;
-        else the map alone. The step length is left as it was, as in :meth:`place_late`.
+        known frame (:class:`~eifslam.frontend.wide.WideMatch`): on the known map features
+        their joined tracks made visible; else from the relative pose of those matches
+        (poorly conditioned with a narrow field of view: 7 degrees off on templering). The step length is left as it was, as in :meth:`place_late`.
 
         Returns
         -------
@@ -293,12 +298,25 @@ class Tracker:
         """
         last_step = self._last_step
         try:
+            if self.localise_from_map(j, timings):
+                return True, None
             rpr = estimate_relative_pose(wide.uv_ref, wide.uv, self.camera, self.frontend.config,
                                          wide.reference, j)
             timings["relative_pose"] = timings.get("relative_pose", 0.0) + rpr.timings_ms.get("relative_pose", 0.0)
-            if rpr.ok:
-                self.localise_and_fuse(j, rpr, timings)
-                return True, wide.reference
-            return self.localise_from_map(j, timings), None
+            if not rpr.ok:
+                return False, None
+            # the relative pose is a starting point only: with a narrow field of view its
+            # rotation can be degrees off, the map's features fix it
+            known, Xk, uvk = self._known_map(j)
+            p_i, q_i = self.filter.pose(wide.reference)
+            p_k, q_k, _ = pose_from_relative(p_i, q_i, rpr.measurement, self.camera, Xk, uvk,
+                                             default_step=self._last_step)
+            n_min = self.config.system.wide_baseline_min_map_features
+            if self.localise_from_map(j, timings, guess=(p_k, q_k), min_features=n_min):
+                return True, None
+            if not self.config.system.wide_baseline_relative:
+                return False, None
+            self.localise_and_fuse(j, rpr, timings)
+            return True, wide.reference
         finally:
             self._last_step = last_step
