@@ -67,7 +67,7 @@ def test_affine_matching_relates_a_slanted_view_plain_sift_barely_does():
     m = WideBaselineMatcher(cam, cfg, max_tilt=2.0)
     u1, u2, n = m.match(0, img1, 1, img2)
     ok = _correct(H, u1, u2)
-    assert ok.sum() >= 40 and ok.mean() > 0.9
+    assert ok.sum() >= 500 and ok.mean() > 0.9  # 2491 of 2560 measured
     # plain SIFT with the front end's matching (ratio 0.8) on the same pair finds fewer
     sift = cv2.SIFT_create(cfg.max_features)
     k1, d1 = sift.detectAndCompute(img1, None)
@@ -76,7 +76,7 @@ def test_affine_matching_relates_a_slanted_view_plain_sift_barely_does():
     i1, i2 = DescriptorMatcher(cfg.ratio).match(d1, d2)
     p1 = np.array([k.pt for k in k1])[i1]
     p2 = np.array([k.pt for k in k2])[i2]
-    assert ok.sum() > 1.5 * _correct(H, p1, p2).sum()
+    assert ok.sum() > 5 * _correct(H, p1, p2).sum()  # 135 measured
     # features are cached per frame id
     assert m.features(0, img2) is m.features(0, img1)
 
