@@ -34,6 +34,7 @@ from .loops import LoopCloser, LoopClosure
 from .mapping import Mapper
 from .session import load_session, save_session
 from .tracking import Tracker
+from .wide import retry_wide
 
 Array = NDArray[np.float64]
 
@@ -280,18 +281,18 @@ class Slam:
         return TrackResult(mp.frame_id, ts, TrackingState.TRACKING, mp.p.copy(), mp.q.copy(), mp.covariance,
                            reason=reason, reference=mp.reference, timings_ms=timings, keyframe=False)
 
-    def _untracked(self) -> list[int]:
+    def untracked(self) -> list[int]:
         """Frames (after the first) that have no pose, in frame order."""
         return [r.frame_id for r in self.results if r.frame_id > 0 and r.position is None]
 
-    def _retry(self, j: int, reason: str, relative: bool = True, wide=None) -> bool:
+    def retry_frame(self, j: int, reason: str, relative: bool = True, wide=None, relative_first: bool = False) -> bool:
         """Localise an earlier frame *j* that has no pose (:meth:`Tracker.place_late`, or
         :meth:`Tracker.place_wide` with the wide-baseline matches ``wide``). On success
         the frame's :class:`TrackResult` is updated in place (``reason`` says why it was
         late)."""
         timings: dict[str, float] = {}
         try:
-            placed, ref = self.tracker.place_late(j, relative, timings) if wide is None \
+            placed, ref = self.tracker.place_late(j, relative, timings, relative_first) if wide is None \
                 else self.tracker.place_wide(j, wide, timings)
         except EstimatorError:
             return False
@@ -326,7 +327,7 @@ class Slam:
             # the map only (a waiting frame is on a short baseline to its neighbours and its
             # ZR/ZT would be poor; retry_lost() tries relative poses at the end)
             for j in sorted(self._waiting, reverse=True):
-                self._retry(j, "localised once the map was initialised (waited for a baseline)", relative=False)
+                self.retry_frame(j, "localised once the map was initialised (waited for a baseline)", relative=False)
             self._waiting = []
         res.timings_ms["total"] = 1e3 * (time.perf_counter() - t0)
         res.map_features = self.filter.layout.n_features
@@ -340,44 +341,31 @@ class Slam:
         that waited for the first baseline. With ``system.wide_baseline`` and ``images``
         (frame id -> the image given to :meth:`track`), the frames still without a pose
         are then matched with affine-simulated features to their nearest known frames
-        (:mod:`~eifslam.frontend.wide`), and their neighbours retried after each one
-        placed. Returns how many frames it added."""
+        (:func:`~.wide.retry_wide`) and the rest retried once they are placed. Returns
+        how many frames it added."""
         added = 0
         if self.filter.layout.n_poses < 2:
             return 0
-        added += self._retry_passes(max_passes, first_map_only=True)
+        added += self.retry_passes(max_passes, first_map_only=True)
         sysc = self.config.system
         if images is not None and sysc.wide_baseline:
-            from ..frontend.wide import WideBaselineMatcher
-
-            matcher = WideBaselineMatcher(self.camera, self.frontend.config, sysc.wide_baseline_max_tilt)
-            tried: set[int] = set()
-            while True:
-                todo = [j for j in self._untracked() if j not in tried]
-                if not todo:
-                    break
-                j = todo[0]
-                tried.add(j)
-                # join the tracks of every reference first (more known map features), then
-                # place the frame (on the map; else from the best reference's relative pose)
-                refs = self.tracker.nearest_known(j)[: sysc.wide_baseline_references]
-                wides = [matcher.relate(self.frontend, ref, images(ref), j, images(j)) for ref in refs]
-                best = max(wides, key=lambda w: len(w.uv))
-                if self._retry(j, f"localised after the run by wide-baseline matching to frame {best.reference} "
-                                  f"({len(best.uv)} affine matches)", wide=best):
-                    added += 1 + self._retry_passes(max_passes, first_map_only=False)
+            wide = retry_wide(self, images)
+            added += wide + (self.retry_passes(max_passes, first_map_only=False) if wide else 0)
         if added:
             self.filter.recover_active()
         return added
 
-    def _retry_passes(self, max_passes: int, first_map_only: bool) -> int:
-        """Passes of :meth:`_retry` over the frames without a pose until one adds none
-        (the first against the map alone when ``first_map_only``); how many it added."""
+    def retry_passes(self, max_passes: int, first_map_only: bool) -> int:
+        """Passes of :meth:`retry_frame` over the frames without a pose until one adds none;
+        how many it added. ``first_map_only``: the first pass against the map alone, then
+        relative poses once the map is exhausted; otherwise (after a frame placed by
+        wide-baseline matching) relative poses first, as in the run."""
         added = 0
-        for n in range(max_passes):  # the map first; relative poses once the map is exhausted
-            new = sum(self._retry(j, "localised after the run, against the final map",
-                                  relative=n > 0 or not first_map_only)
-                      for j in self._untracked())
+        for n in range(max_passes):
+            new = sum(self.retry_frame(j, "localised after the run, against the final map" if first_map_only
+                                       else "localised after the run, after a wide-baseline placement",
+                                       relative=n > 0 or not first_map_only, relative_first=not first_map_only)
+                      for j in self.untracked())
             added += new
             if new == 0 and (n > 0 or not first_map_only):
                 break

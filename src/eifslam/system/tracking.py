@@ -256,9 +256,13 @@ class Tracker:
             filt.fuse_relative([rp])
         self.mapper.fuse_and_recover(k, t0, timings)
 
-    def place_late(self, j: int, relative: bool, timings: dict[str, float]) -> tuple[bool, int | None]:
+    def place_late(self, j: int, relative: bool, timings: dict[str, float],
+                   relative_first: bool = False) -> tuple[bool, int | None]:
         """Localise an earlier frame *j* that has no pose: from the map alone, else (with
-        ``relative``) from a relative pose to the nearest known poses.
+        ``relative``) from a relative pose to the nearest known poses; with
+        ``relative_first`` the relative pose first and then the map, as a frame of the
+        run is placed (for the frames after one placed by wide-baseline matching: the map
+        there is young, and their ``ZR``/``ZT`` hold the scale along them).
 
         The step length between consecutive frames (the scale guess of the next frame)
         is left as it was. Raises :class:`~eifslam.errors.EstimatorError` as
@@ -272,9 +276,14 @@ class Tracker:
         """
         last_step = self._last_step
         try:
+            if relative_first:
+                rp, _ = self.find_reference(j, timings, relocalise=False)
+                if rp is not None:
+                    self.localise_and_fuse(j, rp, timings)
+                    return True, rp.measurement.i
             if self.localise_from_map(j, timings):
                 return True, None
-            if not relative:
+            if not relative or relative_first:
                 return False, None
             rp, _ = self.find_reference(j, timings, relocalise=False)
             if rp is None:
