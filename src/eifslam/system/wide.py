@@ -15,7 +15,7 @@ import numpy as np
 __all__ = ["retry_wide"]
 
 
-def retry_wide(slam, images: Callable[[int], np.ndarray]) -> int:
+def retry_wide(slam, images: Callable[[int], np.ndarray], max_rounds: int = 3) -> int:
     """Place frames without a pose from wide-baseline matches; how many it placed.
 
     The frames without a pose, in frame order, are matched with affine-simulated
@@ -27,6 +27,9 @@ def retry_wide(slam, images: Callable[[int], np.ndarray]) -> int:
     lost, and more of the old map's features in view: templering's ATE 0.0041 -> 0.0038;
     0.0040 with the first reference alone) and placed as in the run: a relative pose to
     the nearest known frames, else the map, else from its own wide-baseline matches.
+    A frame that fails is tried again in the next round (at most ``max_rounds``) when the
+    round placed others (its nearest known frames may have changed); the affine features
+    of each frame are computed once.
 
     Parameters
     ----------
@@ -35,26 +38,29 @@ def retry_wide(slam, images: Callable[[int], np.ndarray]) -> int:
         :meth:`~eifslam.system.slam.Slam.retry_frame`).
     images : callable
         Frame id -> the image :meth:`~eifslam.system.slam.Slam.track` was given.
+    max_rounds : int
+        Rounds over the frames without a pose.
     """
     from ..frontend.wide import WideBaselineMatcher
 
     sysc = slam.config.system
     matcher = WideBaselineMatcher(slam.camera, slam.frontend.config, sysc.wide_baseline_max_tilt)
-    added, anchor, tried = 0, None, set()
-    while True:
-        todo = [j for j in slam.untracked() if j not in tried]
-        if not todo:
-            return added
-        j = todo[0]
-        tried.add(j)
-        refs = slam.tracker.nearest_known(j)[: sysc.wide_baseline_references]
-        refs += [anchor] if anchor is not None and anchor not in refs else []
-        wides = [matcher.relate(slam.frontend, ref, images(ref), j, images(j)) for ref in refs]
-        best = max(wides, key=lambda w: len(w.uv))
-        if anchor is not None and slam.retry_frame(j, "localised after the run, after a wide-baseline placement",
-                                                   relative_first=True):
-            added += 1
-        elif slam.retry_frame(j, f"localised after the run by wide-baseline matching to frame {best.reference} "
-                                 f"({len(best.uv)} affine matches)", wide=best):
-            added += 1
-            anchor = best.reference if anchor is None else anchor
+    added, anchor = 0, None
+    for _ in range(max_rounds):
+        placed = 0
+        for j in slam.untracked():
+            refs = slam.tracker.nearest_known(j)[: sysc.wide_baseline_references]
+            refs += [anchor] if anchor is not None and anchor not in refs else []
+            wides = [matcher.relate(slam.frontend, ref, images(ref), j, images(j)) for ref in refs]
+            best = max(wides, key=lambda w: len(w.uv))
+            if anchor is not None and slam.retry_frame(
+                    j, "localised after the run, after a wide-baseline placement", relative_first=True):
+                placed += 1
+            elif slam.retry_frame(j, f"localised after the run by wide-baseline matching to frame "
+                                     f"{best.reference} ({len(best.uv)} affine matches)", wide=best):
+                placed += 1
+                anchor = best.reference if anchor is None else anchor
+        added += placed
+        if placed == 0 or not slam.untracked():
+            break
+    return added
