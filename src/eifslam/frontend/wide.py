@@ -22,6 +22,7 @@ frame sees known map features.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import cv2
@@ -166,14 +167,15 @@ class WideBaselineMatcher:
             t *= np.sqrt(2.0)
         return out
 
-    def features(self, frame_id: int, image: np.ndarray) -> Features:
-        """Affine-simulated features of a frame's image (cached by frame id; descriptors
+    def features(self, frame_id: int, images: Callable[[int], np.ndarray]) -> Features:
+        """Affine-simulated features of a frame's image (cached by frame id: ``images``,
+        frame id -> image, is only called for a frame not seen yet; descriptors
         RootSIFT-normalised)."""
         f = self._cache.get(int(frame_id))
         if f is None:
             if self._detector is None:
                 self._detector = affine_detector(self._frontend_config, self.max_tilt)
-            f = detect_features(image, self.camera, self.config, self._detector)
+            f = detect_features(images(int(frame_id)), self.camera, self.config, self._detector)
             f = replace(f, descriptors=root_normalise(f.descriptors))
             self._cache[int(frame_id)] = f
         return f
@@ -182,10 +184,10 @@ class WideBaselineMatcher:
         """Drop the cached features."""
         self._cache.clear()
 
-    def match(self, ref_id: int, ref_image: np.ndarray, frame_id: int, image: np.ndarray
-              ) -> tuple[Array, Array, int]:
-        """Epipolar-consistent affine matches ``(uv_ref, uv, n_matches)`` of two images."""
-        fa, fb = self.features(ref_id, ref_image), self.features(frame_id, image)
+    def match(self, ref_id: int, frame_id: int, images: Callable[[int], np.ndarray]) -> tuple[Array, Array, int]:
+        """Epipolar-consistent affine matches ``(uv_ref, uv, n_matches)`` of two frames'
+        images (``images``: frame id -> image)."""
+        fa, fb = self.features(ref_id, images), self.features(frame_id, images)
         ia, ib = distinct_ratio_matches(self._matcher, fa, fb, self.ratio)
         n = int(len(ia))
         c = self._frontend_config
@@ -193,12 +195,11 @@ class WideBaselineMatcher:
                                   c.ransac_confidence, c.ransac_method)
         return fa.uv[ia[inl]], fb.uv[ib[inl]], n
 
-    def relate(self, frontend, ref_id: int, ref_image: np.ndarray, frame_id: int, image: np.ndarray
-               ) -> WideMatch:
-        """Match frame ``frame_id`` to frame ``ref_id`` and join the tracks of the stored
-        keypoints both ends of a match land on (``frontend``: a
+    def relate(self, frontend, ref_id: int, frame_id: int, images: Callable[[int], np.ndarray]) -> WideMatch:
+        """Match frame ``frame_id`` to frame ``ref_id`` (:meth:`match`) and join the tracks
+        of the stored keypoints both ends of a match land on (``frontend``: a
         :class:`~eifslam.frontend.frontend.FrontEnd` holding both frames)."""
-        uv_ref, uv, n = self.match(ref_id, ref_image, frame_id, image)
+        uv_ref, uv, n = self.match(ref_id, frame_id, images)
         fr, fk = frontend.frame(ref_id), frontend.frame(frame_id)
         a = snap_to_keypoints(uv_ref, fr.uv, self.snap_px)
         b = snap_to_keypoints(uv, fk.uv, self.snap_px)

@@ -258,7 +258,8 @@ class SystemConfig:
         if isinstance(v, bool) or not isinstance(v, int) or v < 4:
             raise ConfigError(f"system.wide_baseline_min_map_features must be an integer >= 4, got {v!r}")
         if not isinstance(self.wide_baseline_relative, bool):
-            raise ConfigError(f"system.wide_baseline_relative must be true or false, got {self.wide_baseline_relative!r}")
+            raise ConfigError("system.wide_baseline_relative must be true or false, "
+                              f"got {self.wide_baseline_relative!r}")
         if not isinstance(self.keyframes, bool):
             raise ConfigError(f"system.keyframes must be true or false, got {self.keyframes!r}")
         if self.keyframe_parallax_deg is not None:

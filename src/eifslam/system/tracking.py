@@ -18,7 +18,6 @@ from ..estimation.initialisation import pose_from_relative
 from ..estimation.localisation import localise_pose, map_pose_covariance
 from ..estimation.measurements import pack_relative, unpack_relative
 from ..estimation.statedict import sub, take_float
-from ..frontend.relative_pose import estimate_relative_pose
 from ..frontend.results import RelativePoseResult
 from ..geometry.camera import PinholeCamera
 from .config import SlamConfig
@@ -296,8 +295,13 @@ class Tracker:
     def place_wide(self, j: int, wide, timings: dict[str, float]) -> tuple[bool, int | None]:
         """Localise an earlier frame *j* that has no pose from wide-baseline matches to a
         known frame (:class:`~eifslam.frontend.wide.WideMatch`): on the known map features
-        their joined tracks made visible; else from the relative pose of those matches
-        (poorly conditioned with a narrow field of view: 7 degrees off on templering). The step length is left as it was, as in :meth:`place_late`.
+        their joined tracks made visible (at least ``system.min_map_features`` from the
+        nearest known pose, else ``system.wide_baseline_min_map_features`` from the
+        relative pose of the matches). That relative pose is fused only with
+        ``system.wide_baseline_relative`` (with a narrow field of view it is poorly
+        conditioned: 7 degrees off on templering). The step length is left as it was, as
+        in :meth:`place_late`. Raises :class:`~eifslam.errors.EstimatorError` as
+        :meth:`localise_and_fuse` does.
 
         Returns
         -------
@@ -305,6 +309,9 @@ class Tracker:
         reference : int or None
             The reference pose of the relative pose used (None: placed on the map).
         """
+        # imported here: it needs OpenCV, and importing eifslam.system.config must not
+        from ..frontend.relative_pose import estimate_relative_pose
+
         last_step = self._last_step
         try:
             if self.localise_from_map(j, timings):

@@ -51,7 +51,7 @@ def retry_wide(slam, images: Callable[[int], np.ndarray], max_rounds: int = 3) -
         for j in slam.untracked():
             refs = slam.tracker.nearest_known(j)[: sysc.wide_baseline_references]
             refs += [anchor] if anchor is not None and anchor not in refs else []
-            wides = [matcher.relate(slam.frontend, ref, images(ref), j, images(j)) for ref in refs]
+            wides = [matcher.relate(slam.frontend, ref, j, images) for ref in refs]
             best = max(wides, key=lambda w: len(w.uv))
             if anchor is not None and slam.retry_frame(
                     j, "localised after the run, after a wide-baseline placement", relative_first=True):
