@@ -167,6 +167,23 @@ class SystemConfig:
         After a loop is fused, relinearise every stored measurement and recover this many
         passes at most (:func:`~eifslam.estimation.smoothing.smooth`, no outlier gates);
         0: the loop's ``Zm`` are fused at the current linearisation point only.
+    wide_baseline : bool
+        After the run, match the frames still without a pose to their nearest known
+        frames with affine-simulated features (ASIFT, ``cv2.AffineFeature``; seconds per
+        frame, so offline only) and place them from those matches
+        (:mod:`eifslam.frontend.wide`, docs/frontend.md). Needs the images again (the
+        runner passes its sequence's). Off by default.
+    wide_baseline_max_tilt : float in [1, 8]
+        Largest tilt ASIFT simulates (2: slants up to 60 degrees, 10 views).
+    wide_baseline_references : int >= 1
+        Known frames, nearest in frame order, each lost frame is matched against.
+    wide_baseline_min_map_features : int >= 4
+        A frame placed by wide-baseline matching needs at least this many known map
+        features on its joined tracks (it is localised on them, starting from the
+        relative pose of the matches).
+    wide_baseline_relative : bool
+        With fewer map features, fuse the relative pose of the wide-baseline matches
+        instead (off: on templering it is 7 degrees off and costs accuracy).
     """
 
     mode: Mode = Mode.SMOOTH
@@ -201,6 +218,11 @@ class SystemConfig:
     loop_false_alarm: float = 1e-6
     loop_consistency: int = 3
     loop_smooth_passes: int = 0
+    wide_baseline: bool = False
+    wide_baseline_max_tilt: float = 2.0
+    wide_baseline_references: int = 2
+    wide_baseline_min_map_features: int = 6
+    wide_baseline_relative: bool = False
 
     def __post_init__(self) -> None:
         try:
@@ -224,6 +246,20 @@ class SystemConfig:
         if not isinstance(self.relative_gate_pose_uncertainty, bool):
             raise ConfigError("system.relative_gate_pose_uncertainty must be true or false, "
                               f"got {self.relative_gate_pose_uncertainty!r}")
+        if not isinstance(self.wide_baseline, bool):
+            raise ConfigError(f"system.wide_baseline must be true or false, got {self.wide_baseline!r}")
+        v = self.wide_baseline_max_tilt
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 1.0 <= v <= 8.0:
+            raise ConfigError(f"system.wide_baseline_max_tilt must lie in [1, 8], got {v!r}")
+        v = self.wide_baseline_references
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ConfigError(f"system.wide_baseline_references must be an integer >= 1, got {v!r}")
+        v = self.wide_baseline_min_map_features
+        if isinstance(v, bool) or not isinstance(v, int) or v < 4:
+            raise ConfigError(f"system.wide_baseline_min_map_features must be an integer >= 4, got {v!r}")
+        if not isinstance(self.wide_baseline_relative, bool):
+            raise ConfigError("system.wide_baseline_relative must be true or false, "
+                              f"got {self.wide_baseline_relative!r}")
         if not isinstance(self.keyframes, bool):
             raise ConfigError(f"system.keyframes must be true or false, got {self.keyframes!r}")
         if self.keyframe_parallax_deg is not None:

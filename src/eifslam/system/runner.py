@@ -325,7 +325,8 @@ def _run(seq, config: SlamConfig, max_frames: int | None, scale: tuple | None, q
             stopped = (stopped + "; " if stopped else "") + f"session not saved: {exc}"
             print(f"eifslam: session not saved: {exc}", file=sys.stderr)
     # after Ctrl-C the user wants out: no retrying of lost frames, only the mode's step
-    fin = slam.finish(retry=stopped is None or stopped.startswith("stopped"))
+    fin = slam.finish(retry=stopped is None or stopped.startswith("stopped"),
+                      images=seq.load if slam.config.system.wide_baseline else None)
     if fin.retry_error is not None:
         print(f"eifslam: retrying lost frames failed ({fin.retry_error})", file=sys.stderr)
     for msg in fin.failures:  # the filter's estimate is kept rather than the run lost

@@ -14,6 +14,7 @@ to any known pose.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -29,10 +30,12 @@ from ..geometry.camera import PinholeCamera
 from .config import Mode, SlamConfig
 from .finishing import FinishReport, bundle_adjust_slam
 from .keyframes import Keyframes
+from .late import place_late, retry_passes, unplaced_initial
 from .loops import LoopCloser, LoopClosure
 from .mapping import Mapper
 from .session import load_session, save_session
 from .tracking import Tracker
+from .wide import retry_wide
 
 Array = NDArray[np.float64]
 
@@ -279,51 +282,16 @@ class Slam:
         return TrackResult(mp.frame_id, ts, TrackingState.TRACKING, mp.p.copy(), mp.q.copy(), mp.covariance,
                            reason=reason, reference=mp.reference, timings_ms=timings, keyframe=False)
 
-    def _untracked(self) -> list[int]:
+    def untracked(self) -> list[int]:
         """Frames (after the first) that have no pose, in frame order."""
         return [r.frame_id for r in self.results if r.frame_id > 0 and r.position is None]
 
-    def _place_late(self, frames: list[int], reason: str, relative: bool = True) -> int:
-        """Localise earlier frames that have no pose (:meth:`Tracker.place_late`), in the
-        given order, then recover once for all of them (each placement alone would recover
-        the old states it touches: a rebuild of the recovery window per frame). The
-        :class:`TrackResult` of each frame placed is updated in place (``reason`` says why
-        it was late). Returns how many were placed."""
-        placed: list[tuple[int, int | None, dict[str, float]]] = []
-        for j in frames:
-            timings: dict[str, float] = {}
-            try:
-                ok, ref = self.tracker.place_late(j, relative, timings, recover=False)
-            except EstimatorError:
-                continue
-            if ok:
-                placed.append((j, ref, timings))
-        if not placed:
-            return 0
-        t0 = time.perf_counter()
-        self.filter.recover_active()
-        recover_ms = 1e3 * (time.perf_counter() - t0) / len(placed)
-        for j, ref, timings in placed:
-            p, q = self.filter.pose(j)
-            old = self.results[j]
-            timings["recover"] = recover_ms  # the shared recovery, per frame placed
-            self.results[j] = TrackResult(j, old.timestamp, TrackingState.TRACKING, p, q,
-                                          self.filter.pose_covariance(j), reason=reason, reference=ref,
-                                          timings_ms={**old.timings_ms, **timings},
-                                          map_features=self.filter.layout.n_features, state_dim=self.filter.dim)
-        return len(placed)
-
-    def _unplaced_initial(self, k: int) -> list[int]:
-        """Frames that waited for the first baseline and that the young map could not
-        place yet, nearest to frame *k* first; they are retried at keyframes for as many
-        frames again as the initialisation took (then at :meth:`retry_lost`)."""
-        first = next((r.frame_id for r in self.results if r.frame_id > 0 and r.position is not None
-                      and r.state is TrackingState.TRACKING and r.reference is not None), None)
-        if first is None or k > 2 * first:
-            return []
-        return sorted((r.frame_id for r in self.results
-                       if r.frame_id > 0 and r.position is None and r.state is TrackingState.INITIALISING),
-                      reverse=True)
+    def retry_frame(self, j: int, reason: str, relative: bool = True, wide=None, relative_first: bool = False) -> bool:
+        """Localise an earlier frame *j* that has no pose (:func:`~.late.place_late`:
+        :meth:`Tracker.place_late`, or :meth:`Tracker.place_wide` with the wide-baseline
+        matches ``wide``). On success the frame's :class:`TrackResult` is updated in place
+        (``reason`` says why it was late)."""
+        return place_late(self, [j], reason, relative, wide, relative_first) == 1
 
     def _lost_state(self) -> TrackingState:
         return TrackingState.INITIALISING if self.filter.layout.n_poses < 2 else TrackingState.LOST
@@ -346,35 +314,42 @@ class Slam:
             # nearest to the new frame first (they share the most features with it), from
             # the map only (a waiting frame is on a short baseline to its neighbours and its
             # ZR/ZT would be poor; retry_lost() tries relative poses at the end)
-            self._place_late(sorted(self._waiting, reverse=True),
-                             "localised once the map was initialised (waited for a baseline)", relative=False)
+            place_late(self, sorted(self._waiting, reverse=True),
+                       "localised once the map was initialised (waited for a baseline)", relative=False)
             self._waiting = []
         elif res.state is TrackingState.TRACKING and res.keyframe and self.filter.layout.n_poses >= 2:
             # the first map is small (few features have the parallax yet): the frames it
             # could not place are tried again at the next keyframes, as the map grows
-            late = self._unplaced_initial(res.frame_id)
+            late = unplaced_initial(self, res.frame_id)
             if late:
-                self._place_late(late, "localised once the map had grown (waited for a baseline)", relative=False)
+                place_late(self, late, "localised once the map had grown (waited for a baseline)", relative=False)
         res.timings_ms["total"] = 1e3 * (time.perf_counter() - t0)
         res.map_features = self.filter.layout.n_features
         res.state_dim = self.filter.dim
         return res
 
     # -- after the run ------------------------------------------------------------
-    def retry_lost(self, max_passes: int = 3) -> int:
+    def retry_lost(self, max_passes: int = 3, images: Callable[[int], np.ndarray] | None = None) -> int:
         """Give every frame without a pose one more chance against the final map (an
         offline step, the first of :meth:`finish`): frames lost on the way, and frames
-        that waited for the first baseline. Returns how many frames it added."""
+        that waited for the first baseline. With ``system.wide_baseline`` and ``images``
+        (frame id -> the image given to :meth:`track`), the frames still without a pose
+        are then matched with affine-simulated features to their nearest known frames
+        (:func:`~.wide.retry_wide`) and the rest retried once they are placed. Returns
+        how many frames it added."""
         added = 0
         if self.filter.layout.n_poses < 2:
             return 0
-        for n in range(max_passes):  # the map first; relative poses once the map is exhausted
-            new = self._place_late(self._untracked(), "localised after the run, against the final map",
-                                   relative=n > 0)
-            added += new
-            if new == 0 and n > 0:
-                break
+        added += self.retry_passes(max_passes, first_map_only=True)
+        sysc = self.config.system
+        if images is not None and sysc.wide_baseline:
+            wide = retry_wide(self, images)
+            added += wide + (self.retry_passes(max_passes, first_map_only=False) if wide else 0)
         return added
+
+    def retry_passes(self, max_passes: int, first_map_only: bool) -> int:
+        """Passes over the frames without a pose until one adds none (:func:`~.late.retry_passes`)."""
+        return retry_passes(self, max_passes, first_map_only)
 
     def smooth(self, max_passes: int | None = None) -> SmoothingReport:
         """Relinearise every stored measurement and recover (paper III-E)."""
@@ -395,11 +370,12 @@ class Slam:
         self.bundle_adjustment = bundle_adjust_slam(self, config)
         return self.bundle_adjustment
 
-    def finish(self, retry: bool = True) -> FinishReport:
+    def finish(self, retry: bool = True, images: Callable[[int], np.ndarray] | None = None) -> FinishReport:
         """End a run as ``system.mode`` says (what ``eifslam run`` does after the last image).
 
         First every frame without a pose gets one more chance (:meth:`retry_lost`, unless
-        ``retry`` is False); then mode ``smooth`` smooths (:meth:`smooth`) and mode ``ba``
+        ``retry`` is False; ``images`` as there: frame id -> image, for the wide-baseline
+        matching of ``system.wide_baseline``); then mode ``smooth`` smooths (:meth:`smooth`) and mode ``ba``
         bundle-adjusts (:meth:`bundle_adjust`); mode ``filter`` keeps the filter's
         estimate. A step that fails is recorded in the report and the estimate so far is
         kept (the run is not lost).
@@ -407,7 +383,7 @@ class Slam:
         rep = FinishReport()
         if retry:
             try:
-                rep.added = self.retry_lost()
+                rep.added = self.retry_lost(images=images)
             except EifslamError as exc:
                 rep.retry_error = str(exc)
         if self.filter.layout.n_poses < 2:

@@ -183,19 +183,24 @@ class Tracker:
         X = filt.x[filt.layout.feature_columns(ids[known])] if known.any() else np.zeros((0, 3))
         return known, X, uv[known]
 
-    def localise_from_map(self, k: int, timings: dict[str, float], recover: bool = True) -> bool:
+    def localise_from_map(self, k: int, timings: dict[str, float], guess: tuple[Array, Array] | None = None,
+                          min_features: int | None = None, recover: bool = True) -> bool:
         """Add frame *k* from ``Zm`` of known map features alone (no usable baseline);
         False when there are too few of them or the pose does not converge.
-        ``recover=False``: fuse without the recovery (the caller recovers once)."""
+
+        ``guess`` (position, ``q_wc``) starts the localisation (default: the nearest
+        known pose); ``min_features`` overrides ``system.min_map_features``;
+        ``recover=False`` fuses without the recovery (the caller recovers once)."""
         filt = self.filter
         if filt.layout.n_poses < 2 or filt.layout.n_features == 0:
             return False
         t0 = time.perf_counter()
         known, X, uv = self._known_map(k)
-        if known.sum() < self.config.system.min_map_features:
+        n_min = self.config.system.min_map_features if min_features is None else int(min_features)
+        if known.sum() < n_min:
             return False
-        p0, q0 = filt.pose(self.nearest_known(k)[0])
-        sol = localise_pose(self.camera, p0, q0, X, uv)
+        p0, q0 = filt.pose(self.nearest_known(k)[0]) if guess is None else guess
+        sol = localise_pose(self.camera, p0, q0, X, uv, min_inliers=min(n_min, 12))
         if sol is None:
             return False
         p, q, _ = sol
@@ -254,10 +259,14 @@ class Tracker:
         self.mapper.fuse_and_recover(k, t0, timings, recover)
 
     def place_late(self, j: int, relative: bool, timings: dict[str, float],
-                   recover: bool = True) -> tuple[bool, int | None]:
+                   relative_first: bool = False, recover: bool = True) -> tuple[bool, int | None]:
         """Localise an earlier frame *j* that has no pose: from the map alone, else (with
-        ``relative``) from a relative pose to the nearest known poses. ``recover=False``
-        fuses it without the recovery (the caller recovers once for several frames).
+        ``relative``) from a relative pose to the nearest known poses; with
+        ``relative_first`` the relative pose first and then the map, as a frame of the
+        run is placed (for the frames after one placed by wide-baseline matching: the map
+        there is young, and their ``ZR``/``ZT`` hold the scale along them).
+        ``recover=False`` fuses it without the recovery (the caller recovers once for
+        several frames).
 
         The step length between consecutive frames (the scale guess of the next frame)
         is left as it was. Raises :class:`~eifslam.errors.EstimatorError` as
@@ -271,9 +280,14 @@ class Tracker:
         """
         last_step = self._last_step
         try:
-            if self.localise_from_map(j, timings, recover):
+            if relative_first:
+                rp, _ = self.find_reference(j, timings, relocalise=False)
+                if rp is not None:
+                    self.localise_and_fuse(j, rp, timings, recover)
+                    return True, rp.measurement.i
+            if self.localise_from_map(j, timings, recover=recover):
                 return True, None
-            if not relative:
+            if not relative or relative_first:
                 return False, None
             rp, _ = self.find_reference(j, timings, relocalise=False)
             if rp is None:
@@ -282,3 +296,48 @@ class Tracker:
             return True, rp.measurement.i
         finally:
             self._last_step = last_step  # the step between consecutive frames, not this one's
+
+    def place_wide(self, j: int, wide, timings: dict[str, float]) -> tuple[bool, int | None]:
+        """Localise an earlier frame *j* that has no pose from wide-baseline matches to a
+        known frame (:class:`~eifslam.frontend.wide.WideMatch`): on the known map features
+        their joined tracks made visible (at least ``system.min_map_features`` from the
+        nearest known pose, else ``system.wide_baseline_min_map_features`` from the
+        relative pose of the matches). That relative pose is fused only with
+        ``system.wide_baseline_relative`` (with a narrow field of view it is poorly
+        conditioned: 7 degrees off on templering). The step length is left as it was, as
+        in :meth:`place_late`. Raises :class:`~eifslam.errors.EstimatorError` as
+        :meth:`localise_and_fuse` does.
+
+        Returns
+        -------
+        placed : bool
+        reference : int or None
+            The reference pose of the relative pose used (None: placed on the map).
+        """
+        # imported here: it needs OpenCV, and importing eifslam.system.config must not
+        from ..frontend.relative_pose import estimate_relative_pose
+
+        last_step = self._last_step
+        try:
+            if self.localise_from_map(j, timings):
+                return True, None
+            rpr = estimate_relative_pose(wide.uv_ref, wide.uv, self.camera, self.frontend.config,
+                                         wide.reference, j)
+            timings["relative_pose"] = timings.get("relative_pose", 0.0) + rpr.timings_ms.get("relative_pose", 0.0)
+            if not rpr.ok:
+                return False, None
+            # the relative pose is a starting point only: with a narrow field of view its
+            # rotation can be degrees off, the map's features fix it
+            known, Xk, uvk = self._known_map(j)
+            p_i, q_i = self.filter.pose(wide.reference)
+            p_k, q_k, _ = pose_from_relative(p_i, q_i, rpr.measurement, self.camera, Xk, uvk,
+                                             default_step=self._last_step)
+            n_min = self.config.system.wide_baseline_min_map_features
+            if self.localise_from_map(j, timings, guess=(p_k, q_k), min_features=n_min):
+                return True, None
+            if not self.config.system.wide_baseline_relative:
+                return False, None
+            self.localise_and_fuse(j, rpr, timings)
+            return True, wide.reference
+        finally:
+            self._last_step = last_step
