@@ -114,7 +114,7 @@ def _scatter_add(A: Array, flat: IntArray, v: Array) -> None:
         A[np.unravel_index(u, A.shape)] += np.bincount(inv.ravel(), v, minlength=len(u))  # u unique
 
 
-def _spd_inverse_3x3(D: Array) -> Array:
+def spd_inverse_3x3(D: Array) -> Array:
     """Inverses of ``(F, 3, 3)`` blocks; raises if a block is not positive definite."""
     try:
         np.linalg.cholesky(D)
@@ -255,7 +255,7 @@ class ActiveWindow:
         matrix.
         """
         F, npw = len(self.D), len(self.pidx)
-        self._Dinv = _spd_inverse_3x3(self.D) if F else np.zeros((0, 3, 3))
+        self._Dinv = spd_inverse_3x3(self.D) if F else np.zeros((0, 3, 3))
         B3 = self.B.reshape(F, 3, npw)
         self._DB = (self._Dinv @ B3).reshape(3 * F, npw)
         Dbf = np.einsum("fij,fj->fi", self._Dinv, self.bf.reshape(F, 3)).ravel()
