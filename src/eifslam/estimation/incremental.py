@@ -33,16 +33,20 @@ after the conditionals of the later-eliminated poses it was conditioned on, as i
 re-eliminates the path to the root of its Bayes tree (:mod:`.reactivation`); no access
 to the full ``I``. That path grows with the time since the state left: a loop closure
 after a long exploration would bring back hundreds of poses into the dense window
-(minutes at 100,000 entries). So the work is estimated first
+(minutes at 100,000 entries); a pose batch is undone only in part when only some of
+its poses are needed (the rest is eliminated again onto the window and those poses).
+So the work is estimated first
 (:meth:`~eifslam.estimation.reactivation.ReactivatingWindow.reactivation_flops`) and,
 when it exceeds the cost of one full sparse solve (:meth:`IncrementalRecovery.rebuild_flops`),
 or when a state lies inside a rebuild's sparse factorisation (which cannot be undone),
-the window is rebuilt from the full sparse ``I`` instead (counted as a fallback): one
-sparse factorisation of the eliminated part (:func:`eifslam.recovery.factorize`), a
-window over the recent states and the touched ones, and every state back-substituted,
-so ``x`` is the full solution at that frame; the frames after it are constant time
-again. Rebuilding also follows :meth:`InformationStore.reset` / ``set`` (smoothing,
-rescaling).
+the window is rebuilt from the full sparse ``I`` instead (counted as a fallback): the
+eliminated part into one feature batch and one dense pose batch when it holds at most
+``undoable_rebuild_pose_entries`` pose entries (undoable like any marginalisation, so a
+revisit after a rebuild re-activates instead of rebuilding again), else into one sparse
+factorisation (:func:`eifslam.recovery.factorize`); a window over the recent states and
+the touched ones, and every state back-substituted, so ``x`` is the full solution at that
+frame; the frames after it are constant time again. Rebuilding also follows
+:meth:`InformationStore.reset` / ``set`` (smoothing, rescaling).
 """
 
 from __future__ import annotations
@@ -355,7 +359,9 @@ class IncrementalRecovery(ReactivatingWindow):
     def _rebuild(self, info: InformationStore, s: int) -> None:
         """Window = features measured within ``rebuild_horizon`` steps, their poses and
         recent poses (states just measured included, however old); the rest ``m`` is eliminated exactly from the
-        full sparse ``I`` into one conditional: one sparse factorisation of ``I_mm``
+        full sparse ``I``: into a feature batch and a dense pose batch when it holds at most
+        ``undoable_rebuild_pose_entries`` pose entries (:meth:`_eliminate_undoably`), else
+        into one conditional: one sparse factorisation of ``I_mm``
         (features first, :func:`~eifslam.estimation.recovery.factorize` on the entries of
         ``m``, without extracting ``I_mm``), and ``I_am I_mm^-1 I_ma`` from ``k + 1``
         solves of its pose system (:meth:`~eifslam.estimation.recovery.SchurFactor.project`),
