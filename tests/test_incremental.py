@@ -14,7 +14,7 @@ from eifslam.estimation.recovery import factorize
 from eifslam.estimation.smoothing import smooth
 from eifslam.estimation.measurements import FeatureObservations
 from eifslam.sim.frontend import SyntheticFrontEnd
-from eifslam.sim.synthetic import corridor_scene, true_relative
+from eifslam.sim.synthetic import SyntheticScene, corridor_scene, true_relative
 from eifslam.system.slam import Slam
 
 
@@ -211,10 +211,12 @@ def test_undone_elimination_restores_the_window_exactly():
 
 
 def test_state_in_a_rebuild_falls_back_to_a_rebuild():
-    """A rebuild keeps the eliminated part as one sparse factorisation, which cannot be
-    undone: measuring a state in it again rebuilds (and stays exact)."""
+    """A rebuild that keeps the eliminated part as one sparse factorisation (forced here:
+    large eliminations do) cannot be undone: measuring a state in it again rebuilds (and
+    stays exact)."""
     sc, m = scene(15, 5)
     f = run_slam(sc, m, InformationFilter(sc.camera, recovery="incremental", window=1))
+    f.incremental.undoable_rebuild_pose_entries = 0
     smooth(f, max_passes=1)  # I replaced: the next step rebuilds into one factorisation
     f.recover_active()
     st = f.incremental.stats
@@ -305,3 +307,74 @@ def test_cheap_reactivation_is_preferred_and_costly_one_is_not():
     assert 0 < inc.reactivation_flops(near) < inc.reactivation_flops(far)
     assert len(far.poses) > len(near.poses)
     assert inc.reactivation_flops(far) < inc.rebuild_flops()  # small state: floor of 1e9
+
+
+def test_pose_batch_undone_in_part_restores_the_window_exactly():
+    """Re-activating one pose of a batch of several brings back that pose alone (with
+    the separator it needs); the rest stays eliminated, with the pose in its separator,
+    and both the window and the back-substituted estimate equal the full solve."""
+    sc, m = scene(25, 4)
+    f = run_slam(sc, m, InformationFilter(sc.camera, recovery="incremental", window=1))
+    inc = f.incremental
+    f.recover_active()  # nothing new: the whole window leaves in one batch
+    assert len(inc.active_indices) == 0
+    x_before = full_solve(f)
+    last = f.layout.pose_offset(f.layout.pose_ids[-1])
+    batch = inc._conds[inc._owner[last]]  # noqa: SLF001
+    n_batch = len(batch.idx) // 7
+    assert n_batch > 2
+    assert inc._reactivate(np.array([batch.idx[0]]))  # noqa: SLF001
+    assert len(inc.pidx) == 7 and inc.pidx[0] == batch.idx[0]  # that pose alone
+    inc._solve()  # noqa: SLF001
+    assert rel_err(inc.xp, x_before[inc.pidx]) < 1e-8
+    x = f.x.copy()
+    inc.full_solution(x)
+    assert rel_err(x, x_before) < 1e-8
+    # and again: the pose ages out into a batch of its own, the rest of the first
+    # batch keeps it in its separator; bringing back another of its poses stays exact
+    _old_image_again(f, m, int(f.layout.pose_ids[-2]))
+    f.recover_active()
+    a = inc.active_indices
+    assert rel_err(f.x[a], full_solve(f)[a]) < 1e-8
+    f.recover_active()
+    f.complete_estimate()
+    assert rel_err(f.x, full_solve(f)) < 1e-8
+    assert rel_err(f.x, np.linalg.solve(f.information_matrix().toarray(), f.information_vector())) < 1e-8
+
+
+def test_revisiting_stream_stays_exact_without_rebuild_cascade():
+    """A camera walking down a corridor and back (looking ahead both ways), its window
+    rebuilt at the turn (as after a loop closure): the way back re-observes states
+    eliminated by that rebuild. They
+    are re-activated (batches undone in part), the window equals the full solve at every
+    frame, and there is no rebuild after the forced one; with the sparse-factorisation
+    rebuild the same stream rebuilds again and again (the cascade this avoids)."""
+
+    def run(undoable: int):
+        c = corridor_scene(20, np.random.default_rng(11), points_per_metre=12.0)
+        back = np.r_[np.arange(20), np.arange(18, 4, -1)]
+        sc = SyntheticScene(c.camera, c.positions[back], c.quats[back], c.points)
+        fe = SyntheticFrontEnd(sc, 11, map_fraction=1.0)
+        f = InformationFilter(sc.camera, recovery="incremental", window=1)
+        f.incremental.undoable_rebuild_pose_entries = undoable
+        diffs, rebuilds = [], []
+
+        def check(k, filt):
+            if k == 19:
+                filt.incremental.on_invalidate()  # e.g. I replaced: rebuild at the next frame
+            a = filt.incremental.active_indices
+            diffs.append(rel_err(filt.x[a], full_solve(filt)[a]))
+            rebuilds.append(filt.incremental.stats.rebuilds)
+
+        run_slam(sc, fe, f, on_frame=check)
+        return f, diffs, rebuilds
+
+    f, diffs, rebuilds = run(2100)
+    st = f.incremental.stats
+    assert max(diffs) < 1e-8
+    assert rebuilds[-1] == 2 and st.fallbacks == 0  # the first frame and the forced one
+    assert st.reactivations > 0
+    assert rel_err(f.x, full_solve(f)) < 1e-8
+    g, gdiffs, grebuilds = run(0)
+    assert max(gdiffs) < 1e-8
+    assert grebuilds[-1] > rebuilds[-1]  # the sparse factorisation cannot be undone

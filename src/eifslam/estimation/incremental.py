@@ -33,16 +33,20 @@ after the conditionals of the later-eliminated poses it was conditioned on, as i
 re-eliminates the path to the root of its Bayes tree (:mod:`.reactivation`); no access
 to the full ``I``. That path grows with the time since the state left: a loop closure
 after a long exploration would bring back hundreds of poses into the dense window
-(minutes at 100,000 entries). So the work is estimated first
+(minutes at 100,000 entries); a pose batch is undone only in part when only some of
+its poses are needed (the rest is eliminated again onto the window and those poses).
+So the work is estimated first
 (:meth:`~eifslam.estimation.reactivation.ReactivatingWindow.reactivation_flops`) and,
 when it exceeds the cost of one full sparse solve (:meth:`IncrementalRecovery.rebuild_flops`),
 or when a state lies inside a rebuild's sparse factorisation (which cannot be undone),
-the window is rebuilt from the full sparse ``I`` instead (counted as a fallback): one
-sparse factorisation of the eliminated part (:func:`eifslam.recovery.factorize`), a
-window over the recent states and the touched ones, and every state back-substituted,
-so ``x`` is the full solution at that frame; the frames after it are constant time
-again. Rebuilding also follows :meth:`InformationStore.reset` / ``set`` (smoothing,
-rescaling).
+the window is rebuilt from the full sparse ``I`` instead (counted as a fallback): the
+eliminated part into one feature batch and one dense pose batch when it holds at most
+``undoable_rebuild_pose_entries`` pose entries (undoable like any marginalisation, so a
+revisit after a rebuild re-activates instead of rebuilding again), else into one sparse
+factorisation (:func:`eifslam.recovery.factorize`); a window over the recent states and
+the touched ones, and every state back-substituted, so ``x`` is the full solution at that
+frame; the frames after it are constant time again. Rebuilding also follows
+:meth:`InformationStore.reset` / ``set`` (smoothing, rescaling).
 """
 
 from __future__ import annotations
@@ -55,6 +59,7 @@ from typing import Any, Iterator, Mapping, Protocol
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
+from scipy.linalg import cho_factor, cho_solve
 
 from ..errors import ConfigError, EstimatorError, SessionError
 from .information import InformationStore
@@ -62,7 +67,7 @@ from .recovery import factorize
 from .statedict import sub, take_ids, take_int
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout
 from .reactivation import ReactivatingWindow
-from .window import Conditional, RecoveryStats
+from .window import Conditional, RecoveryStats, spd_inverse_3x3
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -176,6 +181,16 @@ class IncrementalRecovery(ReactivatingWindow):
         conditionals that can be undone: a feature seen again after a short gap then
         re-activates instead of rebuilding once more (a sparse factorisation cannot be
         undone).
+    undoable_rebuild_pose_entries : int
+        A rebuild that eliminates at most this many pose entries (300 poses) does so as
+        :meth:`_marginalise` would, into a feature batch and one dense pose batch
+        (:meth:`_eliminate_undoably`), so that a state measured again after a rebuild is
+        re-activated (only the poses its features need come back, see
+        :meth:`~eifslam.estimation.reactivation.ReactivatingWindow._undo_poses`) instead
+        of rebuilding once more: on a sequence that keeps revisiting old places, one
+        rebuild per frame otherwise. Larger eliminations use one sparse factorisation
+        (:func:`~eifslam.estimation.recovery.factorize`; ``q x q`` dense would cost
+        ``O(q^3)``), which cannot be undone. 0: always the sparse factorisation.
     """
 
     feature_window: int = 2
@@ -184,12 +199,17 @@ class IncrementalRecovery(ReactivatingWindow):
     full_solve_flops_per_entry: float = 2e4
     min_rebuild_flops: float = 1e9
     rebuild_horizon: int = 10
+    undoable_rebuild_pose_entries: int = 2100
 
     def __post_init__(self) -> None:
         for key in ("feature_window", "pose_window", "rebuild_horizon"):
             v = getattr(self, key)
             if not (isinstance(v, (int, np.integer)) and v >= 1):
                 raise ConfigError(f"{key} must be an integer >= 1, got {v!r}")
+        if not (isinstance(self.undoable_rebuild_pose_entries, (int, np.integer))
+                and self.undoable_rebuild_pose_entries >= 0):
+            raise ConfigError(f"undoable_rebuild_pose_entries must be an integer >= 0, "
+                              f"got {self.undoable_rebuild_pose_entries!r}")
         for key in ("full_solve_flops_per_entry", "min_rebuild_flops"):
             v = getattr(self, key)
             if not (np.isfinite(v) and v >= 0):
@@ -339,7 +359,9 @@ class IncrementalRecovery(ReactivatingWindow):
     def _rebuild(self, info: InformationStore, s: int) -> None:
         """Window = features measured within ``rebuild_horizon`` steps, their poses and
         recent poses (states just measured included, however old); the rest ``m`` is eliminated exactly from the
-        full sparse ``I`` into one conditional: one sparse factorisation of ``I_mm``
+        full sparse ``I``: into a feature batch and a dense pose batch when it holds at most
+        ``undoable_rebuild_pose_entries`` pose entries (:meth:`_eliminate_undoably`), else
+        into one conditional: one sparse factorisation of ``I_mm``
         (features first, :func:`~eifslam.estimation.recovery.factorize` on the entries of
         ``m``, without extracting ``I_mm``), and ``I_am I_mm^-1 I_ma`` from ``k + 1``
         solves of its pose system (:meth:`~eifslam.estimation.recovery.SchurFactor.project`),
@@ -364,17 +386,21 @@ class IncrementalRecovery(ReactivatingWindow):
         m = np.flatnonzero(~active)
         self._conds = []
         self._owner = np.full(n, -1, np.int64)
-        Ia = I[pa]  # (7p, n): the active poses' rows; I_ma is its transpose (I symmetric)
-        P = Ia[:, pa].toarray()
-        bp = i[pa].copy()
-        if len(m):
-            factor = factorize(I, m[~isf[m]], m[isf[m]])
-            Cg = sp.csr_matrix(Ia.T)
-            CtAC, CtAb = factor.project(Cg, i)
-            P -= CtAC
-            bp -= CtAb
-            self._conds.append(Conditional(m, i[m].copy(), Cg[m], pa, factor=factor.restricted(m)))
-            self._owner[m] = 0
+        mf, mp = m[isf[m]], m[~isf[m]]
+        if len(m) and 0 < self.undoable_rebuild_pose_entries and len(mp) <= self.undoable_rebuild_pose_entries:
+            P, bp = self._eliminate_undoably(I, i, pa, mf, mp)
+        else:
+            Ia = I[pa]  # (7p, n): the active poses' rows; I_ma is its transpose (I symmetric)
+            P = Ia[:, pa].toarray()
+            bp = i[pa].copy()
+            if len(m):
+                factor = factorize(I, mp, mf)
+                Cg = sp.csr_matrix(Ia.T)
+                CtAC, CtAb = factor.project(Cg, i)
+                P -= CtAC
+                bp -= CtAb
+                self._conds.append(Conditional(m, i[m].copy(), Cg[m], pa, factor=factor.restricted(m)))
+                self._owner[m] = 0
         self._pos[:] = -1
         self.pidx, self.fidx = pa, fa
         self._pos[pa] = np.arange(len(pa))
@@ -389,6 +415,60 @@ class IncrementalRecovery(ReactivatingWindow):
         np.add.at(self.D, (coo.row[same] // 3, coo.row[same] % 3, coo.col[same] % 3), coo.data[same])
         self.B = I[fa][:, pa].toarray()
         self.bf = i[fa].copy()
+
+
+    def _eliminate_undoably(self, I: sp.csr_matrix, i: Array, pa: IntArray, mf: IntArray,
+                            mp: IntArray) -> tuple[Array, Array]:
+        """Eliminate features ``mf`` then poses ``mp`` from ``I x = i`` (CSR, ``(n, n)``)
+        into two conditionals that can be undone (in part), as :meth:`_marginalise` would
+        have: one feature batch (3x3 blocks, coupling to the poses as CSR) and one dense
+        pose batch, its separator the active poses ``pa``. Returns the marginal ``P``
+        ``(len(pa), len(pa))`` and ``bp`` of ``pa``. ``O(f + nnz + q^3)``, ``q = len(mp)``.
+
+        Raises
+        ------
+        EstimatorError
+            When two features share a measurement or a feature block is not positive
+            definite.
+        """
+        ps = np.concatenate([pa, mp])
+        na = len(pa)
+        Spp = I[ps][:, ps].toarray()
+        sv = i[ps].copy()
+        if len(mf):
+            F = len(mf) // FEATURE_DIM
+            If = I[mf]
+            coo = If[:, mf].tocoo()
+            same = coo.row // 3 == coo.col // 3
+            if not np.all(same | (coo.data == 0)):
+                raise EstimatorError("two features share a measurement: the information matrix is not of SLAM form")
+            D = np.zeros((F, 3, 3))
+            np.add.at(D, (coo.row[same] // 3, coo.row[same] % 3, coo.col[same] % 3), coo.data[same])
+            Dinv = spd_inverse_3x3(D)
+            Bf = sp.csr_matrix(If[:, ps])  # (3F, len(ps))
+            rows = np.repeat(np.arange(3 * F), 3)
+            cols = (np.arange(3 * F)[:, None] // 3 * 3 + np.arange(3)).ravel()
+            Dsp = sp.csr_matrix((Dinv.reshape(3 * F, 3).ravel(), (rows, cols)), shape=(3 * F, 3 * F))
+            Spp -= (Bf.T @ (Dsp @ Bf)).toarray()
+            sv -= Bf.T @ (Dsp @ i[mf])
+            nz = np.zeros(len(ps), bool)
+            nz[Bf.indices] = True
+            self._conds.append(Conditional(mf, i[mf].copy(), Bf[:, np.flatnonzero(nz)], ps[nz], Dinv=Dinv, A=D))
+            self._owner[mf] = len(self._conds) - 1
+            self.stats.marginalised_features += F
+        Spp = 0.5 * (Spp + Spp.T)
+        P, bp = Spp[:na, :na], sv[:na]
+        if len(mp):
+            A, C, bq = Spp[na:, na:], Spp[na:, :na], sv[na:]
+            chol = cho_factor(A, lower=True, check_finite=False)
+            Y = cho_solve(chol, np.column_stack([C, bq]), check_finite=False)
+            P = P - C.T @ Y[:, :-1]
+            bp = bp - C.T @ Y[:, -1]
+            nz = np.flatnonzero(np.any(C != 0, axis=0))
+            self._conds.append(Conditional(mp, bq.copy(), C[:, nz], pa[nz], chol=chol, A=A))
+            self._owner[mp] = len(self._conds) - 1
+            self.stats.marginalised_poses += len(mp) // POSE_DIM
+        return P, bp
 
 
 __all__ = ["EntryMap", "IncrementalRecovery", "InformationListener", "RecoveryStats", "TrackedInformationStore"]

@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import cho_solve
+import scipy.sparse as sp
+from scipy.linalg import cho_factor, cho_solve
 
 from ..errors import EstimatorError
 from .state import FEATURE_DIM, POSE_DIM
@@ -31,35 +32,63 @@ class ReactivationPlan:
     Attributes
     ----------
     features : slot in the conditionals -> block starts of the features to bring back.
-    poses : slots of pose batches (undone whole).
+    poses : slot of a pose batch -> block starts of its poses to bring back (the whole
+        batch, or part of it: the rest stays eliminated, see
+        :meth:`ReactivatingWindow._undo_poses`).
     """
 
     features: dict[int, set[int]] = field(default_factory=dict)
-    poses: set[int] = field(default_factory=set)
+    poses: dict[int, set[int]] = field(default_factory=dict)
+
+
+def _row_columns(C: Array | sp.csr_matrix, rows: slice | NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Which columns of ``C`` (dense or CSR) are non-zero in ``rows``."""
+    Cr = C[rows]
+    if sp.issparse(Cr):
+        out = np.zeros(C.shape[1], bool)
+        out[sp.csr_matrix(Cr).indices] = True
+        return out
+    return np.any(Cr != 0, axis=0)
 
 
 class ReactivatingWindow(ActiveWindow):
     """An :class:`ActiveWindow` whose eliminations can be undone (see the module)."""
 
     def reactivation_flops(self, plan: ReactivationPlan) -> float:
-        """Dense work (floating-point operations, order of magnitude) of carrying out
-        ``plan`` and solving and re-marginalising the grown window once: every undone
-        pose batch re-allocates the pose block (``p'^2`` each), the pose Schur complement
-        and its Cholesky factorisation cost ``3 f p'^2 + p'^3`` with ``p'`` the pose
-        entries of the grown window and ``f`` its features."""
-        p = len(self.pidx) + sum(len(self._conds[s].idx) for s in plan.poses)
-        f = len(self.fidx) + FEATURE_DIM * sum(len(v) for v in plan.features.values())
+        """Extra dense work (floating-point operations, order of magnitude) of carrying
+        out ``plan`` and solving the grown window once, over solving the current window:
+        every undone batch re-allocates the pose block (``p'^2`` each), a pose batch
+        undone in part re-eliminates the rest (``q^3``, ``q`` its entries), and the pose
+        Schur complement and its Cholesky factorisation grow from ``3 f p^2 + 2 p^3`` to
+        ``3 f' p'^2 + 2 p'^3`` (``p``, ``p'`` the pose entries of the window before and
+        after, ``f``, ``f'`` its feature entries)."""
+        p0, f0 = len(self.pidx), len(self.fidx)
+        part = 0.0
+        back = 0
+        for s, blocks in plan.poses.items():
+            q = len(self._conds[s].idx)
+            back += POSE_DIM * len(blocks)
+            if POSE_DIM * len(blocks) < q:
+                part += float(q) ** 3
+        p = p0 + back
+        f = f0 + FEATURE_DIM * sum(len(v) for v in plan.features.values())
         n_undo = len(plan.poses) + len(plan.features)
-        return float(n_undo * p**2 + 3.0 * f * p**2 + 2.0 * p**3)
+        grow = 3.0 * f * p**2 + 2.0 * p**3 - (3.0 * f0 * p0**2 + 2.0 * p0**3)
+        return float(n_undo * p**2 + part + max(grow, 0.0))
 
     def plan_reactivation(self, blocks: IntArray) -> "ReactivationPlan | None":
         """What :meth:`_reactivate` would undo for marginalised ``blocks`` (block starts),
         without changing anything: the feature batches (and which of their features) and
-        the pose batches, latest elimination first. None when a state lies in a rebuild
-        conditional (a sparse factorisation, which cannot be undone)."""
+        the pose batches (and which of their poses), latest elimination first. None when
+        a state lies in a rebuild conditional (a sparse factorisation, which cannot be
+        undone).
+
+        A state comes back with the separator of its conditional: the poses its
+        conditional was coupled to when it was eliminated (for a pose batch: every
+        separator entry of the batch), recursively, as in iSAM2's path to the root."""
         start, pos, owner = self._map.start, self._pos, self._owner
         feats: dict[int, set[int]] = {}  # slot -> block starts of the features to bring back
-        poses: set[int] = set()  # slots of pose batches (undone whole)
+        poses: dict[int, set[int]] = {}  # slot -> block starts of the poses to bring back
         seen: set[int] = set()
         stack = [int(b) for b in blocks]
         while stack:
@@ -73,13 +102,13 @@ class ReactivatingWindow(ActiveWindow):
                 return None
             if c.Dinv is not None:
                 feats.setdefault(slot, set()).add(b)
-                r = np.flatnonzero(c.idx == b)[0]
-                sep = c.cidx[np.any(c.C[r : r + FEATURE_DIM] != 0, axis=0)]
+                r = int(np.flatnonzero(c.idx == b)[0])
+                sep = c.cidx[_row_columns(c.C, slice(r, r + FEATURE_DIM))]
             else:
-                if slot in poses:
+                first = slot not in poses
+                poses.setdefault(slot, set()).add(b)
+                if not first:
                     continue
-                poses.add(slot)
-                seen.update(int(v) for v in c.idx[::POSE_DIM])
                 sep = c.cidx
             sep = np.unique(start[sep])
             stack.extend(int(v) for v in sep[pos[sep] < 0])
@@ -96,9 +125,11 @@ class ReactivatingWindow(ActiveWindow):
         information of ``q`` and the window exactly, provided every state of ``S`` is
         active again: the conditionals that eliminated them later are undone first (as
         iSAM2 re-eliminates the path from a clique to the root of its Bayes tree).
-        Conditionals eliminated earlier that depend on ``q`` stay valid. A feature
-        batch is split: only the requested features come back. Costs
-        ``O(|S|^2 (|q| + |S|))`` per undone conditional, no access to the full ``I``.
+        Conditionals eliminated earlier that depend on ``q`` stay valid. A batch is
+        split: only the requested features or poses come back, the rest of a pose batch
+        is eliminated again onto the window and the poses brought back
+        (:meth:`_undo_poses`). Costs ``O(|S|^2 (|q| + |S|))`` per undone conditional, no
+        access to the full ``I``.
 
         Parameters
         ----------
@@ -114,10 +145,10 @@ class ReactivatingWindow(ActiveWindow):
         if plan is None:
             return False
         feats, poses = plan.features, plan.poses
-        n_poses = sum(len(self._conds[slot].idx) // POSE_DIM for slot in poses)
-        for slot in sorted(set(feats) | poses, reverse=True):  # latest elimination first
+        n_poses = sum(len(v) for v in poses.values())
+        for slot in sorted(set(feats) | set(poses), reverse=True):  # latest elimination first
             if slot in poses:
-                self._undo_poses(slot)
+                self._undo_poses(slot, np.fromiter(poses[slot], np.int64))
             else:
                 self._undo_features(slot, np.fromiter(feats[slot], np.int64))
         st = self.stats
@@ -126,43 +157,76 @@ class ReactivatingWindow(ActiveWindow):
         st.reactivated_features += sum(len(v) for v in feats.values())
         return True
 
-    def _undo_poses(self, slot: int) -> None:
-        """Undo the elimination of the pose batch in ``_conds[slot]`` (its separator is active)."""
+    def _undo_poses(self, slot: int, blocks: IntArray | None = None) -> None:
+        """Undo the elimination of poses ``blocks`` (block starts; None: all) of the pose
+        batch in ``_conds[slot]`` (its separator ``k`` is active).
+
+        Undone in part, the batch ``q = r + q'`` splits: ``r`` comes back with the
+        marginal information of ``(k, r)`` after eliminating ``q'`` alone,
+        ``H = [[A_rr, C_r], [C_r^T, .]] - [A_rq'; C_q'^T] A_q'q'^-1 [A_q'r, C_q']``, and
+        the window's ``k`` block gets ``C^T A^-1 C - C_q'^T A_q'q'^-1 C_q' =
+        H_kr H_rr^-1 H_rk`` back (the same with ``b`` as one more column); ``q'`` stays
+        eliminated with separator ``k + r``. Exact, ``O(q^3)``."""
         c = self._conds[slot]
         k = self._pos[c.cidx]
         if np.any(k < 0):
             raise EstimatorError("internal: re-activating poses whose separator is not active")
-        q, nq = c.idx, len(c.idx)
+        rsel = np.ones(len(c.idx), bool) if blocks is None else np.isin(self._map.start[c.idx], blocks)
+        if not rsel.any():
+            return
+        q = c.idx[rsel]
+        nq = len(q)
+        if rsel.all():
+            Y = cho_solve(c.chol, np.column_stack([c.C, c.b]), check_finite=False)
+            dK, db = c.C.T @ Y[:, :-1], c.C.T @ Y[:, -1]
+            Hrr, Hrk, hr = c.A, c.C, c.b
+            self._conds[slot] = None
+        else:
+            keep = ~rsel
+            A, C, b = c.A, c.C, c.b
+            Aqq, Aqr = A[np.ix_(keep, keep)], A[np.ix_(keep, rsel)]
+            chol = cho_factor(Aqq, lower=True, check_finite=False)
+            Y = cho_solve(chol, np.column_stack([Aqr, C[keep], b[keep]]), check_finite=False)
+            Hrr = A[np.ix_(rsel, rsel)] - Aqr.T @ Y[:, :nq]
+            Hrr = 0.5 * (Hrr + Hrr.T)
+            Hrk = C[rsel] - Aqr.T @ Y[:, nq:-1]
+            hr = b[rsel] - Aqr.T @ Y[:, -1]
+            Z = cho_solve(cho_factor(Hrr, lower=True, check_finite=False), np.column_stack([Hrk, hr]),
+                          check_finite=False)
+            dK, db = Hrk.T @ Z[:, :-1], Hrk.T @ Z[:, -1]
+            Cn = np.column_stack([C[keep], Aqr])
+            cidx = np.concatenate([c.cidx, q])
+            nz = np.flatnonzero(np.any(Cn != 0, axis=0))
+            self._conds[slot] = Conditional(c.idx[keep], b[keep].copy(), Cn[:, nz], cidx[nz], chol=chol, A=Aqq)
         p0 = len(self.pidx)
-        Y = cho_solve(c.chol, np.column_stack([c.C, c.b]), check_finite=False)
         P = np.zeros((p0 + nq, p0 + nq))
         P[:p0, :p0] = self.P
-        P[np.ix_(k, k)] += c.C.T @ Y[:, :-1]
-        P[p0:, p0:] = c.A
-        P[p0:, k] = c.C
-        P[k, p0:] = c.C.T
-        bp = np.concatenate([self.bp, c.b])
-        bp[k] += c.C.T @ Y[:, -1]
+        P[np.ix_(k, k)] += dK
+        P[p0:, p0:] = Hrr
+        P[p0:, k] = Hrk
+        P[k, p0:] = Hrk.T
+        bp = np.concatenate([self.bp, hr])
+        bp[k] += db
         self.P, self.bp = 0.5 * (P + P.T), bp
         self.B = np.concatenate([self.B, np.zeros((len(self.fidx), nq))], axis=1)
         self.pidx = np.concatenate([self.pidx, q])
         self._pos[q] = np.arange(p0, p0 + nq)
         self._owner[q] = -1
-        self._conds[slot] = None
 
     def _undo_features(self, slot: int, blocks: IntArray) -> None:
         """Undo the elimination of features ``blocks`` (block starts) of the feature batch in
-        ``_conds[slot]``; the other features of the batch stay eliminated."""
+        ``_conds[slot]``; the other features of the batch stay eliminated. ``C`` may be
+        dense or CSR (a rebuild's batch of every eliminated feature)."""
         c = self._conds[slot]
         fb = c.idx[::FEATURE_DIM]
         sel = np.isin(fb, blocks)
         rows = np.repeat(sel, FEATURE_DIM)
-        Cs = c.C[rows]
-        cols = np.any(Cs != 0, axis=0)
+        cols = _row_columns(c.C, rows)
+        Cs = c.C[rows][:, cols]
+        Cs = Cs.toarray() if sp.issparse(Cs) else Cs
         k = self._pos[c.cidx[cols]]
         if np.any(k < 0):
             raise EstimatorError("internal: re-activating features whose poses are not active")
-        Cs = Cs[:, cols]
         Dinv = c.Dinv[sel]
         g = int(sel.sum())
         DC = np.einsum("fij,fjm->fim", Dinv, Cs.reshape(g, 3, -1)).reshape(3 * g, -1)
@@ -185,7 +249,7 @@ class ReactivatingWindow(ActiveWindow):
             self._conds[slot] = None
             return
         Ck = c.C[keep]
-        nz = np.any(Ck != 0, axis=0)
+        nz = _row_columns(Ck, slice(None))
         self._conds[slot] = Conditional(c.idx[keep], c.b[keep], Ck[:, nz], c.cidx[nz], Dinv=c.Dinv[~sel],
                                          A=c.A[~sel])
 

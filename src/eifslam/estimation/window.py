@@ -24,6 +24,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 from scipy.linalg import cho_factor, cho_solve, solve
+from scipy.linalg.blas import dsyrk
 
 from ..errors import EstimatorError
 from .state import FEATURE_DIM, POSE_DIM
@@ -114,7 +115,15 @@ def _scatter_add(A: Array, flat: IntArray, v: Array) -> None:
         A[np.unravel_index(u, A.shape)] += np.bincount(inv.ravel(), v, minlength=len(u))  # u unique
 
 
-def _spd_inverse_3x3(D: Array) -> Array:
+def _cholesky_3x3(D: Array) -> Array:
+    """Lower Cholesky factors of ``(F, 3, 3)`` blocks; raises if a block is not positive definite."""
+    try:
+        return np.linalg.cholesky(D)
+    except np.linalg.LinAlgError:
+        raise EstimatorError("a feature has no information in some direction (seen from one pose only?)") from None
+
+
+def spd_inverse_3x3(D: Array) -> Array:
     """Inverses of ``(F, 3, 3)`` blocks; raises if a block is not positive definite."""
     try:
         np.linalg.cholesky(D)
@@ -255,21 +264,24 @@ class ActiveWindow:
         matrix.
         """
         F, npw = len(self.D), len(self.pidx)
-        self._Dinv = _spd_inverse_3x3(self.D) if F else np.zeros((0, 3, 3))
+        Linv = np.linalg.inv(_cholesky_3x3(self.D)) if F else np.zeros((0, 3, 3))  # D_f = L L^T
+        self._Dinv = Linv.transpose(0, 2, 1) @ Linv
         B3 = self.B.reshape(F, 3, npw)
         self._DB = (self._Dinv @ B3).reshape(3 * F, npw)
         Dbf = np.einsum("fij,fj->fi", self._Dinv, self.bf.reshape(F, 3)).ravel()
-        S = self.P - self.B.T @ self._DB
         r = self.bp - self.B.T @ Dbf
         self._S_cho, self._S_pidx = None, self.pidx.copy()
         if npw:
-            S = 0.5 * (S + S.T)
+            # S = P - B^T D^-1 B = P - W^T W with W = L^-1 B: a symmetric rank-k update
+            # (half the work of the product), lower triangle only
+            W = (Linv @ B3).reshape(3 * F, npw)
+            S = dsyrk(-1.0, W.T, beta=1.0, c=self.P.T, trans=0, lower=1) if F else self.P.copy()
             try:
                 self._S_cho = cho_factor(S, lower=True, check_finite=False)
                 xp = cho_solve(self._S_cho, r)
             except np.linalg.LinAlgError:
                 try:
-                    xp = solve(S, r, assume_a="sym", check_finite=False)
+                    xp = solve(S, r, assume_a="sym", lower=True, check_finite=False)
                 except np.linalg.LinAlgError:
                     raise EstimatorError("information matrix is singular; is the gauge fixed?") from None
                 self.stats.indefinite_solves += 1
