@@ -229,3 +229,28 @@ def test_smoothing_never_returns_a_higher_common_cost_than_the_filter():
     assert rep.kept != "filter" and rep.rejected_relative == 1
     assert min(rep.common_costs) == rep.common_costs[-1] < rep.common_costs[0]
     assert errors(sc, g)[0] < 0.7 * errors(sc, f)[0]
+
+
+def test_feature_innovation_chi2_against_dense_formula():
+    """``innov^T (R + Jf Pf Jf^T)^-1 innov``, and the statistic against ``R`` where ``Pf``
+    is unknown."""
+    from eifslam.estimation.factors import feature_innovation_chi2
+
+    rng = np.random.default_rng(0)
+    N = 6
+    innov = rng.normal(size=(N, 2)) * 3.0
+    sig = rng.uniform(0.5, 2.0, N)
+    W = np.eye(2)[None] / sig[:, None, None] ** 2
+    Jf = rng.normal(size=(N, 2, 3)) * 50.0
+    A = rng.normal(size=(N, 3, 3)) * 0.01
+    Pf = A @ A.transpose(0, 2, 1)
+    Pf[2] = np.nan
+    chi2_R = np.sum(innov**2, 1) / sig**2
+    out = feature_innovation_chi2(innov, W, Jf, Pf, chi2_R)
+    for n in range(N):
+        if n == 2:
+            assert out[n] == chi2_R[n]
+            continue
+        S = sig[n] ** 2 * np.eye(2) + Jf[n] @ Pf[n] @ Jf[n].T
+        assert out[n] == pytest.approx(innov[n] @ np.linalg.solve(S, innov[n]), rel=1e-10)
+        assert out[n] < chi2_R[n]

@@ -305,3 +305,19 @@ def test_cheap_reactivation_is_preferred_and_costly_one_is_not():
     assert 0 < inc.reactivation_flops(near) < inc.reactivation_flops(far)
     assert len(far.poses) > len(near.poses)
     assert inc.reactivation_flops(far) < inc.rebuild_flops()  # small state: floor of 1e9
+
+
+def test_window_feature_covariances_equal_dense_inverse(incremental_run):
+    """The window's marginal covariance of each active feature is the block of ``I^-1``;
+    features outside the window are NaN (not available cheaply)."""
+    _, _, f, _, _ = incremental_run
+    fids = np.array(f.layout.feature_ids)
+    C = f.feature_covariances(np.concatenate([fids, fids[:3], [10**9]]))  # repeats and an unknown id
+    assert C.shape == (len(fids) + 4, 3, 3)
+    have = np.isfinite(C[: len(fids), 0, 0])
+    assert 0 < have.sum() < len(fids) and np.isnan(C[-1]).all()
+    np.testing.assert_array_equal(C[len(fids): -1], C[:3])
+    Iinv = np.linalg.inv(f.information_matrix().toarray())
+    for t, c in zip(fids[have], C[: len(fids)][have]):
+        cols = f.layout.feature_columns([t])[0]
+        np.testing.assert_allclose(c, Iinv[np.ix_(cols, cols)], rtol=1e-6, atol=1e-12)
