@@ -23,7 +23,11 @@ Writes ``DIR/consistency.json``::
 and ``DIR/consistency.png`` (mean NEES against frame, with the interval).
 
     python benchmarks/consistency.py --out out/consistency            # 50 runs x 50 frames
+    python benchmarks/consistency.py --out out/consistency --jobs 3   # the same, 3 processes
     python benchmarks/consistency.py --out out/consistency --runs 5 --frames 20 # quick look
+
+``benchmarks/consistency_diagnosis.py`` separates the filter's error from its covariance
+(docs/estimator.md, Consistency).
 """
 
 from __future__ import annotations
