@@ -321,3 +321,22 @@ def test_window_feature_covariances_equal_dense_inverse(incremental_run):
     for t, c in zip(fids[have], C[: len(fids)][have]):
         cols = f.layout.feature_columns([t])[0]
         np.testing.assert_allclose(c, Iinv[np.ix_(cols, cols)], rtol=1e-6, atol=1e-12)
+
+
+def test_window_feature_propagate_equals_dense(incremental_run):
+    """``G P G^T`` from the window equals the dense one over the window's features, the
+    others counting as exact."""
+    _, _, f, _, _ = incremental_run
+    fids = np.array(f.layout.feature_ids)
+    active = np.isfinite(f.feature_covariances(fids)[:, 0, 0])
+    n = min(20, int(active.sum()))
+    assert n >= 5 and (~active).sum() >= 5
+    pick = np.concatenate([fids[active][:n], fids[~active][:5]])
+    G = np.random.default_rng(1).normal(size=(6, 3 * len(pick)))
+    out = f.feature_propagate(pick, G)
+    cols = f.layout.feature_columns(pick[:n]).ravel()
+    Iinv = np.linalg.inv(f.information_matrix().toarray())
+    Ga = G[:, : 3 * n]
+    ref = Ga @ Iinv[np.ix_(cols, cols)] @ Ga.T
+    np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-12 * np.abs(ref).max())
+    assert np.all(f.feature_propagate([10**9], np.ones((2, 3))) == 0)

@@ -450,6 +450,35 @@ class InformationFilter(FilterSessionMixin):
         out[known] = C[inv.reshape(-1)]
         return out
 
+    def feature_propagate(self, track_ids, G: Array) -> Array:
+        """``G P G^T`` for the joint marginal covariance ``P`` of map features, where it is
+        cheap: the incremental window as last recovered
+        (:meth:`~eifslam.estimation.window.ActiveWindow.feature_propagate`, ``O(F)``); full
+        recovery: the cached factorisation. Features outside the window or not in the
+        state count as exact; with neither at hand the result is zero.
+
+        Parameters
+        ----------
+        track_ids : (F,) int, distinct feature ids.
+        G : (k, 3 F) float, 3 columns per feature in the order given.
+
+        Returns
+        -------
+        (k, k) float
+        """
+        ids = np.asarray(track_ids, np.int64).reshape(-1)
+        G = np.asarray(G, float)
+        have = self.layout.has_features(ids) if len(ids) else np.zeros(0, bool)
+        if not have.any():
+            return np.zeros((G.shape[0], G.shape[0]))
+        cols = self.layout.feature_columns(ids[have])
+        Gh = G.reshape(G.shape[0], len(ids), 3)[:, have].reshape(G.shape[0], -1)
+        if self.incremental is not None:
+            return self.incremental.feature_propagate(cols[:, 0], Gh)
+        if self._factor is None:
+            return np.zeros((G.shape[0], G.shape[0]))
+        return Gh @ self._factor.covariance(cols.ravel()) @ Gh.T
+
     def feature_covariance(self, track_id: int) -> Array:
         """3x3 covariance of a map feature."""
         return self.covariance(self.layout.feature_columns([track_id])[0])

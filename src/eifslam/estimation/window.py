@@ -223,6 +223,48 @@ class ActiveWindow:
         out[sel] = 0.5 * (C + C.transpose(0, 2, 1))
         return out
 
+    def feature_propagate(self, starts: IntArray, G: Array) -> Array:
+        """``G P G^T`` for the joint marginal covariance ``P`` of features, from the window
+        as last solved, without forming ``P``.
+
+        ``P = blockdiag(D^-1) + (D^-1 B) S^-1 (D^-1 B)^T``, so ``G P G^T = sum_f G_f D_f^-1
+        G_f^T + (G D^-1 B) S^-1 (G D^-1 B)^T``: ``O(F)``. Features that were not active at
+        the last :meth:`_solve` count as exact (zero covariance).
+
+        Parameters
+        ----------
+        starts : (F,) int
+            State index of each feature's first entry (distinct).
+        G : (k, 3 F) float
+            A linear map of the features' errors (3 columns per feature, in order).
+
+        Returns
+        -------
+        (k, k) float
+        """
+        starts = np.asarray(starts, np.int64).reshape(-1)
+        G = np.asarray(G, float)
+        k = G.shape[0]
+        out = np.zeros((k, k))
+        fidx = getattr(self, "_S_fidx", np.zeros(0, np.int64))
+        if not self._valid or len(fidx) == 0 or len(self._Dinv) != len(fidx) // 3 or not len(starts):
+            return out
+        where = {int(v): i for i, v in enumerate(fidx[::3])}
+        blk = np.array([where.get(int(c), -1) for c in starts], np.int64)
+        have = blk >= 0
+        if not have.any():
+            return out
+        b = blk[have]
+        Gh = G.reshape(k, len(starts), 3)[:, have]  # (k, m, 3)
+        GD = np.einsum("kmi,mij->kmj", Gh, self._Dinv[b])
+        out += np.einsum("kmj,lmj->kl", GD, Gh)
+        npw = len(self._S_pidx)
+        if self._S_cho is not None and npw and self._DB.shape == (len(fidx), npw):
+            DB = self._DB.reshape(-1, 3, npw)[b]  # (m, 3, 7p)
+            GDB = np.einsum("kmi,mip->kp", Gh, DB)
+            out += GDB @ cho_solve(self._S_cho, GDB.T)
+        return 0.5 * (out + out.T)
+
     def full_solution(self, x: Array) -> Array:
         """Back-substitute every marginalised state into ``x`` (in place) in ``O(n)``.
 
