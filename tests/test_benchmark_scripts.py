@@ -260,3 +260,15 @@ def test_consistency_jobs_and_diagnosis(tmp_path):
     assert len(res["runs"]) == 2 and set(res["mean"]) >= {"f", "s", "f_Ps", "s_Pf", "f_Pr", "ef2", "es2"}
     assert res["mean"]["f"] == pytest.approx(one["filter"]["mean_nees"], rel=1e-9)
     assert res["mean"]["s"] == pytest.approx(one["smooth"]["mean_nees"], rel=1e-9)
+
+
+def test_consistency_keyframes_smoke(tmp_path):
+    """benchmarks/consistency_keyframes.py on one short slow run writes both settings."""
+    kf = _load("consistency_keyframes")
+    assert kf.main(["--out", str(tmp_path), "--runs", "1", "--frames", "12"]) == 0
+    res = json.loads((tmp_path / "consistency_keyframes.json").read_text())
+    assert set(res) == {"map_pose_uncertainty=False", "map_pose_uncertainty=True"}
+    off, on = res["map_pose_uncertainty=False"], res["map_pose_uncertainty=True"]
+    assert off["keyframes"] == on["keyframes"]  # keyframes are unchanged
+    if off["runs"] and off["between"]["n"]:
+        assert on["between"]["mean_nees"] <= off["between"]["mean_nees"]
