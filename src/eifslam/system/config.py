@@ -149,7 +149,9 @@ class SystemConfig:
         the map features it was localised on (from the filter's incremental window;
         :func:`~eifslam.estimation.localisation.map_pose_covariance`). False: the
         covariance given the map, which leaves the map's error out and is overconfident.
-        Only the reported covariance changes, never an estimate.
+        Only the reported covariance changes, never an estimate. After smoothing or
+        bundle adjustment the window is stale, so :meth:`Slam.finish`'s re-localisation of
+        these frames reports the covariance given the map again.
     loop_closure : bool
         Place recognition on the filter's frames, geometric verification and fusion of
         the loop's ``Zm`` (:mod:`eifslam.system.loops`); ``--loop-closure`` sets it True,
