@@ -23,7 +23,11 @@ Writes ``DIR/consistency.json``::
 and ``DIR/consistency.png`` (mean NEES against frame, with the interval).
 
     python benchmarks/consistency.py --out out/consistency            # 50 runs x 50 frames
+    python benchmarks/consistency.py --out out/consistency --jobs 3   # the same, 3 processes
     python benchmarks/consistency.py --out out/consistency --runs 5 --frames 20 # quick look
+
+``benchmarks/consistency_diagnosis.py`` separates the filter's error from its covariance
+(docs/estimator.md, Consistency).
 """
 
 from __future__ import annotations
@@ -33,6 +37,8 @@ import copy
 import json
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -102,6 +108,11 @@ def one_run(seed: int, frames: int, checkpoints: list[int], sections: dict, map_
     return out
 
 
+def _one_run(a: tuple) -> dict:
+    """:func:`one_run` of an argument tuple (for the process pool)."""
+    return one_run(*a)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True, type=Path)
@@ -111,16 +122,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=100, help="run r uses seed SEED + r")
     ap.add_argument("--map-fraction", type=float, default=1.0,
                     help="share of the scene's points in the map (1: every point, as the tests)")
+    ap.add_argument("--jobs", type=int, default=1, help="runs in parallel processes (same results)")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     args = ap.parse_args(argv)
     sections = parse_sets(args.set)
     checkpoints = sorted({k for k in range(args.every - 1, args.frames, args.every)} | {args.frames - 1})
     t0 = time.perf_counter()
     rows = []
-    for r in range(args.runs):
-        rows.append(one_run(args.seed + r, args.frames, checkpoints, sections, args.map_fraction))
-        print(f"[consistency] run {r + 1}/{args.runs}: filter {rows[-1]['filter'][-1]:.2f} "
-              f"smooth {rows[-1]['smooth'][-1]:.2f}", file=sys.stderr, flush=True)
+    work = [(args.seed + r, args.frames, checkpoints, sections, args.map_fraction) for r in range(args.runs)]
+    with ProcessPoolExecutor(args.jobs) if args.jobs > 1 else nullcontext() as pool:
+        for r, row in enumerate(pool.map(_one_run, work) if pool else map(_one_run, work)):
+            rows.append(row)
+            print(f"[consistency] run {r + 1}/{args.runs}: filter {row['filter'][-1]:.2f} "
+                  f"smooth {row['smooth'][-1]:.2f}", file=sys.stderr, flush=True)
     seconds = time.perf_counter() - t0
     res: dict = {}
     per_frame: dict[str, list] = {"frame": checkpoints}
@@ -134,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
                          consistent=bool(n and lo <= np.mean(V[ok, -1]) <= hi))
         per_frame[mode] = [float(np.nanmean(V[:, c])) for c in range(V.shape[1])]
     res["per_frame"] = per_frame
-    res["settings"] = dict(sections=sections, map_fraction=args.map_fraction, seed=args.seed,
+    res["settings"] = dict(sections=sections, map_fraction=args.map_fraction, seed=args.seed, jobs=args.jobs,
                            seconds=round(seconds, 1), command=" ".join(sys.argv))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "consistency.json").write_text(json.dumps(res, indent=1))

@@ -242,3 +242,33 @@ def test_consistency_benchmark_writes_its_json(tmp_path):
         assert 0 < res[mode]["mean_nees"] < 1e3
     assert res["per_frame"]["frame"] == [2, 5]
     assert (tmp_path / "consistency.png").stat().st_size > 0
+
+
+def test_consistency_jobs_and_diagnosis(tmp_path):
+    """``--jobs 2`` gives the same figures as one process; the diagnosis script writes
+    its per-run figures (the filter's NEES there equals the benchmark's at the last frame)."""
+    consistency = _load("consistency")
+    sys.modules[consistency.__name__] = consistency  # the process pool pickles its functions by module
+    args = ["--runs", "2", "--frames", "6", "--every", "6"]
+    assert consistency.main(["--out", str(tmp_path / "one"), *args]) == 0
+    assert consistency.main(["--out", str(tmp_path / "two"), *args, "--jobs", "2"]) == 0
+    one, two = (json.loads((tmp_path / d / "consistency.json").read_text()) for d in ("one", "two"))
+    assert one["filter"] == two["filter"] and one["smooth"] == two["smooth"]
+    diag = _load("consistency_diagnosis")
+    assert diag.main(["--out", str(tmp_path / "diag"), "--runs", "2", "--frames", "6"]) == 0
+    res = json.loads((tmp_path / "diag" / "diagnosis.json").read_text())
+    assert len(res["runs"]) == 2 and set(res["mean"]) >= {"f", "s", "f_Ps", "s_Pf", "f_Pr", "ef2", "es2"}
+    assert res["mean"]["f"] == pytest.approx(one["filter"]["mean_nees"], rel=1e-9)
+    assert res["mean"]["s"] == pytest.approx(one["smooth"]["mean_nees"], rel=1e-9)
+
+
+def test_consistency_keyframes_smoke(tmp_path):
+    """benchmarks/consistency_keyframes.py on one short slow run writes both settings."""
+    kf = _load("consistency_keyframes")
+    assert kf.main(["--out", str(tmp_path), "--runs", "1", "--frames", "12"]) == 0
+    res = json.loads((tmp_path / "consistency_keyframes.json").read_text())
+    assert set(res) == {"map_pose_uncertainty=False", "map_pose_uncertainty=True"}
+    off, on = res["map_pose_uncertainty=False"], res["map_pose_uncertainty=True"]
+    assert off["keyframes"] == on["keyframes"]  # keyframes are unchanged
+    if off["runs"] and off["between"]["n"]:
+        assert on["between"]["mean_nees"] <= off["between"]["mean_nees"]

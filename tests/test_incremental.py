@@ -378,3 +378,36 @@ def test_revisiting_stream_stays_exact_without_rebuild_cascade():
     g, gdiffs, grebuilds = run(0)
     assert max(gdiffs) < 1e-8
     assert grebuilds[-1] > rebuilds[-1]  # the sparse factorisation cannot be undone
+def test_window_feature_covariances_equal_dense_inverse(incremental_run):
+    """The window's marginal covariance of each active feature is the block of ``I^-1``;
+    features outside the window are NaN (not available cheaply)."""
+    _, _, f, _, _ = incremental_run
+    fids = np.array(f.layout.feature_ids)
+    C = f.feature_covariances(np.concatenate([fids, fids[:3], [10**9]]))  # repeats and an unknown id
+    assert C.shape == (len(fids) + 4, 3, 3)
+    have = np.isfinite(C[: len(fids), 0, 0])
+    assert 0 < have.sum() < len(fids) and np.isnan(C[-1]).all()
+    np.testing.assert_array_equal(C[len(fids): -1], C[:3])
+    Iinv = np.linalg.inv(f.information_matrix().toarray())
+    for t, c in zip(fids[have], C[: len(fids)][have]):
+        cols = f.layout.feature_columns([t])[0]
+        np.testing.assert_allclose(c, Iinv[np.ix_(cols, cols)], rtol=1e-6, atol=1e-12)
+
+
+def test_window_feature_propagate_equals_dense(incremental_run):
+    """``G P G^T`` from the window equals the dense one over the window's features, the
+    others counting as exact."""
+    _, _, f, _, _ = incremental_run
+    fids = np.array(f.layout.feature_ids)
+    active = np.isfinite(f.feature_covariances(fids)[:, 0, 0])
+    n = min(20, int(active.sum()))
+    assert n >= 5 and (~active).sum() >= 5
+    pick = np.concatenate([fids[active][:n], fids[~active][:5]])
+    G = np.random.default_rng(1).normal(size=(6, 3 * len(pick)))
+    out = f.feature_propagate(pick, G)
+    cols = f.layout.feature_columns(pick[:n]).ravel()
+    Iinv = np.linalg.inv(f.information_matrix().toarray())
+    Ga = G[:, : 3 * n]
+    ref = Ga @ Iinv[np.ix_(cols, cols)] @ Ga.T
+    np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-12 * np.abs(ref).max())
+    assert np.all(f.feature_propagate([10**9], np.ones((2, 3))) == 0)

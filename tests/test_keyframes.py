@@ -37,6 +37,24 @@ def test_map_pose_covariance_matches_finite_differences():
     assert np.max(np.abs(C - ref)) < 1e-6 * np.max(np.abs(ref))
     assert map_pose_covariance(cam, p, q, X[:2], sigma) is None  # too few points
 
+    # with the map's uncertainty: the pose moves by A dX, A = -(J^T J)^-1 J^T dh/dX
+    def hx(dX):
+        Xc = (X + dX.reshape(-1, 3) - p) @ quat_to_rotmat(q)
+        return cam.project(Xc).ravel()
+
+    H = np.zeros((2 * len(X), 3 * len(X)))
+    for i in range(3 * len(X)):
+        d = np.zeros(3 * len(X))
+        d[i] = 1e-6
+        H[:, i] = (hx(d) - hx(-d)) / 2e-6
+    A = -np.linalg.solve(J.T @ J, J.T @ H)
+    L = rng.normal(size=(3 * len(X), 3 * len(X))) * 0.01
+    P = L @ L.T + 0.02**2 * np.kron(np.ones((len(X), len(X))), np.eye(3))  # noise + a common shift
+    Cm = map_pose_covariance(cam, p, q, X, sigma, lambda G: G @ P @ G.T)
+    ref_m = ref + A @ P @ A.T
+    assert np.max(np.abs(Cm - ref_m)) < 1e-5 * np.max(np.abs(ref_m))
+    assert np.all(np.linalg.eigvalsh(Cm - C) > -1e-12)  # never smaller than given the map
+
 
 def test_median_parallax():
     X = np.array([[0.0, 0.0, 10.0], [1.0, 0.0, 10.0], [-1.0, 0.0, 10.0]])

@@ -128,6 +128,34 @@ def features(layout: StateLayout, x: Array, camera: PinholeCamera, config: Filte
     return ok, np.concatenate([pc, fc], 1), np.concatenate([Jp, Jf], 2), W, innov, chi2
 
 
+def feature_innovation_chi2(innov: Array, W: Array, Jf: Array, Pf: Array, chi2_R: Array) -> Array:
+    """Normalised innovation squared of ``Zm`` against ``S = R + Jf Pf Jf^T``.
+
+    Parameters
+    ----------
+    innov : (N, 2) ``z - h(x)``, pixels.
+    W : (N, 2, 2) measurement information ``R^-1``, pixels^-2.
+    Jf : (N, 2, 3) Jacobian of the pixel with respect to the feature.
+    Pf : (N, 3, 3) feature covariance; NaN where unknown (then ``S = R``).
+    chi2_R : (N,) the statistic against ``R`` alone (``inf`` where unusable), kept where
+        ``Pf`` is NaN or the result is not finite.
+
+    Returns
+    -------
+    (N,) float
+        ``innov^T S^-1 innov``: a feature whose position is uncertain (e.g. triangulated
+        with little parallax) is not refused for disagreeing with its own estimate.
+    """
+    out = np.asarray(chi2_R, float).copy()
+    have = np.all(np.isfinite(Pf.reshape(len(Pf), -1)), 1) & np.isfinite(out)
+    if have.any():
+        S = np.linalg.inv(W[have]) + Jf[have] @ Pf[have] @ Jf[have].transpose(0, 2, 1)
+        r = innov[have]
+        c = np.einsum("ni,ni->n", r, np.linalg.solve(S, r[:, :, None])[:, :, 0])
+        out[have] = np.where(np.isfinite(c) & (c >= 0), c, out[have])
+    return out
+
+
 def zt_uses_paper(config: FilterConfig, t: Array) -> NDArray[np.bool_]:
     """Which measured unit directions ``t (N, 3)`` use the paper's ``ZT`` form."""
     form = config.zt_form

@@ -236,11 +236,18 @@ class InformationFilter(FilterSessionMixin):
         ok : (N,) bool, usable (predicted depth above ``min_depth``, finite, inside the gate).
         idx : (N, 10) state indices ``[pose 7, feature 3]``; J : (N, 2, 10);
         W : (N, 2, 2) information; innov : (N, 2) ``z - h(x)``; chi2 : (N,) normalised
-        innovation squared (``inf`` where not finite or behind the camera). With
+        innovation squared (``inf`` where not finite or behind the camera; with
+        ``config.gate_feature_uncertainty``, against ``R + J_f P_f J_f^T``, see
+        :meth:`feature_covariances`). With
         ``config.first_estimate_jacobians``, ``J`` is taken at the first estimates (and
         a measurement must be usable there too); everything else at ``x``.
         """
-        ok, idx, J, W, innov, chi2 = factors.features(self.layout, self.x, self.camera, self.config, obs, gate)
+        aware = gate and self.config.gate_chi2 is not None and self.config.gate_feature_uncertainty and len(obs)
+        ok, idx, J, W, innov, chi2 = factors.features(self.layout, self.x, self.camera, self.config, obs,
+                                                      gate and not aware)
+        if aware:  # innovation covariance R + Jf P_f Jf^T where the feature's covariance is at hand
+            chi2 = factors.feature_innovation_chi2(innov, W, J[:, :, 7:], self.feature_covariances(obs.feature), chi2)
+            ok &= chi2 <= self.config.gate_chi2
         if self.config.first_estimate_jacobians and len(obs):
             fe = factors.features(self.layout, self.first_estimates, self.camera, self.config, obs, gate=False)
             ok, J = ok & fe[0], fe[2]
@@ -407,6 +414,70 @@ class InformationFilter(FilterSessionMixin):
         if C is None:
             C = self.covariance(cols)
         return pose_tangent_covariance(C, self.x[cols[3:]])
+
+    def feature_covariances(self, track_ids) -> Array:
+        """Marginal covariances of map features where they are cheap, for gating.
+
+        Incremental recovery: from the active window as last recovered (exact marginals,
+        :meth:`~eifslam.estimation.window.ActiveWindow.feature_covariances`), NaN for a
+        feature outside the window or not in the state. Full recovery: from the cached
+        factorisation when there is one, else NaN.
+
+        Parameters
+        ----------
+        track_ids : (N,) int
+            Feature ids (repeats allowed).
+
+        Returns
+        -------
+        (N, 3, 3) float
+            Covariances, state units squared.
+        """
+        ids = np.asarray(track_ids, np.int64).reshape(-1)
+        out = np.full((len(ids), 3, 3), np.nan)
+        known = self.layout.has_features(ids) if len(ids) else np.zeros(0, bool)
+        if not known.any():
+            return out
+        uniq, inv = np.unique(ids[known], return_inverse=True)
+        cols = self.layout.feature_columns(uniq)
+        if self.incremental is not None:
+            C = self.incremental.feature_covariances(cols[:, 0])
+        elif self._factor is not None:
+            full = self._factor.covariance(cols.ravel())
+            C = np.stack([full[3 * n:3 * n + 3, 3 * n:3 * n + 3] for n in range(len(uniq))])
+        else:
+            return out
+        out[known] = C[inv.reshape(-1)]
+        return out
+
+    def feature_propagate(self, track_ids, G: Array) -> Array:
+        """``G P G^T`` for the joint marginal covariance ``P`` of map features, where it is
+        cheap: the incremental window as last recovered
+        (:meth:`~eifslam.estimation.window.ActiveWindow.feature_propagate`, ``O(F)``); full
+        recovery: the cached factorisation. Features outside the window or not in the
+        state count as exact; with neither at hand the result is zero.
+
+        Parameters
+        ----------
+        track_ids : (F,) int, distinct feature ids.
+        G : (k, 3 F) float, 3 columns per feature in the order given.
+
+        Returns
+        -------
+        (k, k) float
+        """
+        ids = np.asarray(track_ids, np.int64).reshape(-1)
+        G = np.asarray(G, float)
+        have = self.layout.has_features(ids) if len(ids) else np.zeros(0, bool)
+        if not have.any():
+            return np.zeros((G.shape[0], G.shape[0]))
+        cols = self.layout.feature_columns(ids[have])
+        Gh = G.reshape(G.shape[0], len(ids), 3)[:, have].reshape(G.shape[0], -1)
+        if self.incremental is not None:
+            return self.incremental.feature_propagate(cols[:, 0], Gh)
+        if self._factor is None:
+            return np.zeros((G.shape[0], G.shape[0]))
+        return Gh @ self._factor.covariance(cols.ravel()) @ Gh.T
 
     def feature_covariance(self, track_id: int) -> Array:
         """3x3 covariance of a map feature."""

@@ -9,6 +9,8 @@ the pose alone), so that the EIF linearises at a good point.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -70,14 +72,19 @@ def localise_pose(
     return p, q, inl
 
 
-def map_pose_covariance(camera: PinholeCamera, p: Array, q: Array, X: Array, sigma_px: float) -> Array | None:
-    """Covariance of a pose localised on known map features, the map taken as exact.
+def map_pose_covariance(camera: PinholeCamera, p: Array, q: Array, X: Array, sigma_px: float,
+                        map_cov: Callable[[Array], Array] | None = None) -> Array | None:
+    """Covariance of a pose localised on known map features.
 
     The inverse of the Gauss-Newton information ``sum J^T J / sigma_px^2`` of the ``Zm``
     of ``X`` with respect to ``[p, dtheta]`` (``dtheta``, rad, the right-multiplied rotation
     error in the camera frame, ``R_true = R_est @ Exp(dtheta)``, as in
-    :func:`~eifslam.estimation.state.pose_tangent_covariance`). It is conditional on the
-    map, so it leaves out the map's own uncertainty.
+    :func:`~eifslam.estimation.state.pose_tangent_covariance`). Without ``map_cov`` it is
+    conditional on the map (the map's own uncertainty left out); with it, the map's error
+    is propagated too: the pose minimising the reprojection errors moves by
+    ``A dX``, ``A = C sum_n Jp_n^T Jf_n / sigma_px^2``, so the covariance is
+    ``C + A P_X A^T`` (``C`` the conditional one, ``P_X`` the points' joint covariance;
+    the frame's own pixels are not in the map, so the two errors are independent).
 
     Parameters
     ----------
@@ -86,6 +93,10 @@ def map_pose_covariance(camera: PinholeCamera, p: Array, q: Array, X: Array, sig
     X : (N, 3) world points used (the inliers).
     sigma_px : float
         Standard deviation of a pixel measurement.
+    map_cov : callable, optional
+        ``G (k, 3 N) -> G P_X G^T (k, k)`` for the joint covariance ``P_X`` of the points
+        ``X`` (state units squared), e.g. ``lambda G: filt.feature_propagate(ids, G)``
+        (:meth:`InformationFilter.feature_propagate`).
 
     Returns
     -------
@@ -98,9 +109,10 @@ def map_pose_covariance(camera: PinholeCamera, p: Array, q: Array, X: Array, sig
     if N < 3:
         return None
     c = camera
-    _, Jp, _, z = models.feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X,
-                                       c.fx, c.fy, c.cx, c.cy)
-    Jp = Jp[z > 0]
+    _, Jp, Jf, z = models.feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X,
+                                        c.fx, c.fy, c.cx, c.cy)
+    front = z > 0
+    Jp = Jp[front]
     E = np.zeros((7, 6))  # [dp, dtheta] -> [dp, dq], dq = q ⊗ [0, dtheta / 2]
     E[:3, :3] = np.eye(3)
     E[3:, 3:] = 0.5 * quat_left_matrix(q)[:, 1:]
@@ -112,4 +124,11 @@ def map_pose_covariance(camera: PinholeCamera, p: Array, q: Array, X: Array, sig
         return None
     if not np.all(np.isfinite(C)) or np.min(np.linalg.eigvalsh(0.5 * (C + C.T))) <= 0:
         return None
+    if map_cov is not None:
+        G = np.zeros((6, 3 * N))  # sum_n J_n^T Jf_n / sigma^2, one 6x3 block per point
+        G.reshape(6, N, 3)[:, front] = np.einsum("nij,nik->njk", J, Jf[front]).transpose(1, 0, 2) / sigma_px**2
+        A = C @ G
+        M = C + np.asarray(map_cov(A), float)
+        if np.all(np.isfinite(M)):
+            C = M
     return 0.5 * (C + C.T)

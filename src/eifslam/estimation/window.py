@@ -165,7 +165,8 @@ class ActiveWindow:
         """The fields of an empty window (no active state, nothing solved)."""
         return dict(pidx=np.zeros(0, np.int64), fidx=np.zeros(0, np.int64), P=np.zeros((0, 0)), bp=np.zeros(0),
                     D=np.zeros((0, 3, 3)), bf=np.zeros(0), B=np.zeros((0, 0)), xp=np.zeros(0), xf=np.zeros(0),
-                    _S_cho=None, _S_pidx=np.zeros(0, np.int64), _Dinv=np.zeros((0, 3, 3)), _DB=np.zeros((0, 0)))
+                    _S_cho=None, _S_pidx=np.zeros(0, np.int64), _S_fidx=np.zeros(0, np.int64),
+                    _Dinv=np.zeros((0, 3, 3)), _DB=np.zeros((0, 0)))
 
     def _reset_window(self) -> None:
         self.__dict__.update(self.empty_window())
@@ -192,6 +193,86 @@ class ActiveWindow:
         E[pos, np.arange(len(pos))] = 1.0
         C = cho_solve(self._S_cho, E)[pos]
         return 0.5 * (C + C.T)
+
+    def feature_covariances(self, starts: IntArray) -> Array:
+        """Marginal covariances of features from the window as last solved.
+
+        ``D_f^-1 + (D^-1 B)_f S^-1 (D^-1 B)_f^T`` (``S`` the pose Schur complement): the
+        window holds the exact marginal information of its states, so this is the
+        feature's exact marginal covariance as of the last :meth:`_solve` (before what
+        was fused since).
+
+        Parameters
+        ----------
+        starts : (F,) int
+            State index of each feature's first entry.
+
+        Returns
+        -------
+        (F, 3, 3) float
+            Covariances (state units squared); NaN for a feature that was not active at
+            the last solve (or when the window is stale).
+        """
+        starts = np.asarray(starts, np.int64).reshape(-1)
+        out = np.full((len(starts), 3, 3), np.nan)
+        fidx = getattr(self, "_S_fidx", np.zeros(0, np.int64))
+        if not self._valid or len(fidx) == 0 or len(self._Dinv) != len(fidx) // 3:
+            return out
+        where = {int(v): i for i, v in enumerate(fidx[::3])}
+        blk = np.array([where.get(int(c), -1) for c in starts], np.int64)
+        sel = blk >= 0
+        if not sel.any():
+            return out
+        C = self._Dinv[blk[sel]].copy()
+        npw = len(self._S_pidx)
+        if self._S_cho is not None and npw and self._DB.shape == (len(fidx), npw):
+            DB = self._DB.reshape(-1, 3, npw)[blk[sel]]  # (m, 3, 7p)
+            X = cho_solve(self._S_cho, DB.reshape(-1, npw).T).T.reshape(DB.shape)
+            C += DB @ X.transpose(0, 2, 1)
+        out[sel] = 0.5 * (C + C.transpose(0, 2, 1))
+        return out
+
+    def feature_propagate(self, starts: IntArray, G: Array) -> Array:
+        """``G P G^T`` for the joint marginal covariance ``P`` of features, from the window
+        as last solved, without forming ``P``.
+
+        ``P = blockdiag(D^-1) + (D^-1 B) S^-1 (D^-1 B)^T``, so ``G P G^T = sum_f G_f D_f^-1
+        G_f^T + (G D^-1 B) S^-1 (G D^-1 B)^T``: ``O(F)``. Features that were not active at
+        the last :meth:`_solve` count as exact (zero covariance).
+
+        Parameters
+        ----------
+        starts : (F,) int
+            State index of each feature's first entry (distinct).
+        G : (k, 3 F) float
+            A linear map of the features' errors (3 columns per feature, in order).
+
+        Returns
+        -------
+        (k, k) float
+        """
+        starts = np.asarray(starts, np.int64).reshape(-1)
+        G = np.asarray(G, float)
+        k = G.shape[0]
+        out = np.zeros((k, k))
+        fidx = getattr(self, "_S_fidx", np.zeros(0, np.int64))
+        if not self._valid or len(fidx) == 0 or len(self._Dinv) != len(fidx) // 3 or not len(starts):
+            return out
+        where = {int(v): i for i, v in enumerate(fidx[::3])}
+        blk = np.array([where.get(int(c), -1) for c in starts], np.int64)
+        have = blk >= 0
+        if not have.any():
+            return out
+        b = blk[have]
+        Gh = G.reshape(k, len(starts), 3)[:, have]  # (k, m, 3)
+        GD = np.einsum("kmi,mij->kmj", Gh, self._Dinv[b])
+        out += np.einsum("kmj,lmj->kl", GD, Gh)
+        npw = len(self._S_pidx)
+        if self._S_cho is not None and npw and self._DB.shape == (len(fidx), npw):
+            DB = self._DB.reshape(-1, 3, npw)[b]  # (m, 3, 7p)
+            GDB = np.einsum("kmi,mip->kp", Gh, DB)
+            out += GDB @ cho_solve(self._S_cho, GDB.T)
+        return 0.5 * (out + out.T)
 
     def full_solution(self, x: Array) -> Array:
         """Back-substitute every marginalised state into ``x`` (in place) in ``O(n)``.
@@ -270,7 +351,7 @@ class ActiveWindow:
         self._DB = (self._Dinv @ B3).reshape(3 * F, npw)
         Dbf = np.einsum("fij,fj->fi", self._Dinv, self.bf.reshape(F, 3)).ravel()
         r = self.bp - self.B.T @ Dbf
-        self._S_cho, self._S_pidx = None, self.pidx.copy()
+        self._S_cho, self._S_pidx, self._S_fidx = None, self.pidx.copy(), self.fidx.copy()
         if npw:
             # S = P - B^T D^-1 B = P - W^T W with W = L^-1 B: a symmetric rank-k update
             # (half the work of the product), lower triangle only

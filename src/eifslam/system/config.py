@@ -143,6 +143,15 @@ class SystemConfig:
         ... or once this many seconds have passed since the last keyframe (timestamps as
         given to :meth:`Slam.track`; frame indices when none are given, so that every
         frame is then a keyframe).
+    map_pose_uncertainty : bool
+        The covariance of a frame between keyframes (localised on the map, not a state)
+        includes the map's uncertainty: ``C + A P_X A^T``, ``P_X`` the joint covariance of
+        the map features it was localised on (from the filter's incremental window;
+        :func:`~eifslam.estimation.localisation.map_pose_covariance`). False: the
+        covariance given the map, which leaves the map's error out and is overconfident.
+        Only the reported covariance changes, never an estimate. After smoothing or
+        bundle adjustment the window is stale, so :meth:`Slam.finish`'s re-localisation of
+        these frames reports the covariance given the map again.
     loop_closure : bool
         Place recognition on the filter's frames, geometric verification and fusion of
         the loop's ``Zm`` (:mod:`eifslam.system.loops`); ``--loop-closure`` sets it True,
@@ -211,6 +220,7 @@ class SystemConfig:
     keyframe_parallax_deg: float | None = None
     keyframe_min_tracked: float = 0.5
     keyframe_max_interval_s: float = 1.0
+    map_pose_uncertainty: bool = True
     loop_closure: bool = False
     loop_words: int = 256
     loop_train_frames: int = 20

@@ -15,7 +15,8 @@ features triangulated), when one of these measured quantities says so:
   saw (the view moves on);
 * ``system.keyframe_max_interval_s`` seconds passed since the last keyframe.
 
-Every other frame keeps the map pose and its covariance given the map
+Every other frame keeps the map pose and its covariance (given the map, plus the map's own
+uncertainty with ``system.map_pose_uncertainty``)
 (:func:`~eifslam.estimation.localisation.map_pose_covariance`); it is not a state, so the
 filter grows with the keyframes only, and the Ωp/Ωm split and the relative poses stay as
 the paper has them, between keyframes. The front end still tracks every frame, so tracks
@@ -208,7 +209,8 @@ class Keyframes:
         if sol is None:
             return None
         p, q, inl = sol
-        cov = map_pose_covariance(self.camera, p, q, X[inl], self.config.zm_sigma_px)
+        cov = map_pose_covariance(self.camera, p, q, X[inl], self.config.zm_sigma_px,
+                                  self._map_uncertainty(ids[inl]))
         if cov is None:
             return None
         shared = np.isin(ids[inl], self._last_seen)
@@ -216,6 +218,16 @@ class Keyframes:
         return MapPose(int(k), self.last, p, q, cov, ids[inl], uv[inl], float(inl.mean()),
                        median_parallax_deg(X[inl][shared], c_ref, p),
                        float(shared.sum() / max(len(self._last_seen), 1)))
+
+    def _map_uncertainty(self, track_ids):
+        """``G -> G P_X G^T`` for the map features ``track_ids`` (their joint covariance
+        from the filter, :meth:`InformationFilter.feature_propagate`): the map's own
+        uncertainty in a frame's covariance; None when ``system.map_pose_uncertainty`` is
+        off."""
+        if not self.config.system.map_pose_uncertainty:
+            return None
+        ids = np.asarray(track_ids, np.int64)
+        return lambda G: self.filter.feature_propagate(ids, G)
 
     def due(self, timestamp: float) -> str | None:
         """Why a frame at ``timestamp`` (s) must be a keyframe whatever it sees (too long
@@ -280,7 +292,8 @@ class Keyframes:
                                 inlier_px=sysc.inlier_radius_px)
             if sol is None or sol[2].mean() < sysc.map_inlier_fraction:
                 continue
-            cov = map_pose_covariance(self.camera, sol[0], sol[1], X[sol[2]], self.config.zm_sigma_px)
+            cov = map_pose_covariance(self.camera, sol[0], sol[1], X[sol[2]], self.config.zm_sigma_px,
+                                      self._map_uncertainty(mp.track_ids[known][sol[2]]))
             if cov is not None:
                 mp.p, mp.q, mp.covariance = sol[0], sol[1], cov
         return [self._poses[k] for k in sorted(self._poses)]
