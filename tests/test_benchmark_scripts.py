@@ -272,3 +272,44 @@ def test_consistency_keyframes_smoke(tmp_path):
     assert off["keyframes"] == on["keyframes"]  # keyframes are unchanged
     if off["runs"] and off["between"]["n"]:
         assert on["between"]["mean_nees"] <= off["between"]["mean_nees"]
+
+
+def test_loo_study_choice_and_outputs(tmp_path, monkeypatch):
+    """The leave-one-out choice on fake ATEs: a value is chosen on the other sets alone
+    (so the held-out set's own figures never choose it), and the JSON and docs page."""
+    loo = _load("loo_study")
+    assert [loo.parse_value(v) for v in ("0.5", "3", "true", "none", "usac")] == [0.5, 3, True, None, "usac"]
+    assert loo.merge({"a": {"b": 1, "c": 2}}, loo.nested("a.b", 5)) == {"a": {"b": 5, "c": 2}}
+    ref = loo.REFERENCE_ATE
+    # value 2 is twice as good on kitti-seq1 and fountain; value 1 better on castle only
+    ates = {"kitti-seq1": {1: [2 * ref["kitti-seq1"]], 2: [ref["kitti-seq1"]]},
+            "strecha-fountain-p11": {1: [2 * ref["strecha-fountain-p11"]], 2: [ref["strecha-fountain-p11"]]},
+            "strecha-castle-p30": {1: [ref["strecha-castle-p30"]], 2: [3 * ref["strecha-castle-p30"]]}}
+    assert loo.choose(ates, [1, 2], "strecha-castle-p30") == 2  # chosen without castle's own figures
+    assert loo.choose(ates, [1, 2], "kitti-seq1") == 1  # fountain (x2 better) against castle (x3 worse)
+    assert loo.choose({"kitti-seq1": ates["kitti-seq1"]}, [1, 2], "kitti-seq1") is None
+
+    data = tmp_path / "data"
+    for name in ("kitti-seq1", "strecha-fountain-p11"):
+        (data / name / "images").mkdir(parents=True)
+    import eifslam.evaluation.batch as batch
+
+    def fake_serial(tasks, force=False, **kw):
+        out = []
+        for t in tasks:
+            conf = t.config["frontend"]["ransac_confidence"]
+            ate = ref[t.dataset] * (1.0 if conf > 0.9995 else 1.5)
+            out.append({"dataset": t.dataset, "ate_rmse": ate, "tracked": 5, "frames": 5, "status": "done",
+                        "seconds": 1.0})
+        return out
+
+    monkeypatch.setattr(batch, "run_serial", fake_serial)
+    docs = tmp_path / "docs" / "loo.md"
+    rc = loo.main(["--data", str(data), "--out", str(tmp_path / "out"), "--param", "frontend.ransac_confidence",
+                   "--values", "0.999,0.9999", "--seeds", "0,1", "--docs", str(docs)])
+    assert rc == 0
+    res = json.loads((tmp_path / "out" / "loo_study.json").read_text())
+    assert len(res["runs"]) == 2 * 2 * 2
+    assert [t["chosen"] for t in res["table"]] == [0.9999, 0.9999]
+    text = docs.read_text()
+    assert "Leave-one-data-set-out" in text and "| kitti-seq1 | 0.9999 |" in text
