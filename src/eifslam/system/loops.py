@@ -86,6 +86,9 @@ class LoopClosure:
 
 _FIELDS = [f for f in LoopClosure.__dataclass_fields__]
 
+CHI2_2DOF_99 = 9.21
+"""99% quantile of chi-square with 2 degrees of freedom (a pixel residual)."""
+
 
 class LoopCloser:
     """Loop detection and fusion for a :class:`~eifslam.system.slam.Slam`.
@@ -208,7 +211,7 @@ class LoopCloser:
         dq = float(np.degrees(np.linalg.norm(quat_log(quat_multiply(quat_conjugate(q_f), chk.q)))))
         obs = FeatureObservations.make(np.full(len(chk.keypoints), k), fids[chk.features], fk.uv[chk.keypoints],
                                        self.config.zm_sigma_px)
-        if sysc.loop_smooth_passes:
+        if sysc.loop_smooth_passes and not self._predicted(obs):
             # the loop's correction can be far from the linearisation point of the poses it
             # moves (on the loop world 10-70 deg after a lap): first move the estimate as a
             # pose graph would (the correction spread along the loop), then fuse the loop and
@@ -234,6 +237,14 @@ class LoopCloser:
                          chk.five_point_required, len(fused), dp, dq)
         self.closures.append(lc)
         return lc
+
+    def _predicted(self, obs: FeatureObservations) -> bool:
+        """Whether the filter's estimate already predicts the loop's ``Zm`` (the median
+        normalised innovation within the 99% chi-square bound of a pixel): the linearised
+        fusion is then valid and nothing needs relinearising (a loop found again a few
+        frames after one was corrected)."""
+        chi2 = self.filter.linearise_features(obs, gate=False)[5]
+        return bool(np.all(np.isfinite(chi2)) and np.median(chi2) <= CHI2_2DOF_99)
 
     # -- sessions -------------------------------------------------------------------
     def state_dict(self) -> dict:
