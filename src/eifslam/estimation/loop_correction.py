@@ -152,3 +152,44 @@ def correct_loop(filt: "InformationFilter", j: int, k: int, p_k: Array, q_k: Arr
     rot = float(np.degrees(np.linalg.norm(quat_log(quat_multiply(Q2[ik], quat_conjugate(Q[ik]))))))
     filt.set_estimate(x)
     return LoopCorrection(len(moved), nf, rot, float(np.linalg.norm(P2[ik] - P[ik])))
+
+
+def relinearise_all(filt: "InformationFilter", passes: int, tol: float = 1e-6) -> int:
+    """Gauss-Newton passes over every stored measurement from the (corrected) estimate:
+    each rebuilds ``I``, ``i`` at ``x`` (:meth:`~eifslam.estimation.filter.InformationFilter.relinearise`,
+    paper III-E) and solves the whole state (:meth:`~eifslam.estimation.filter.InformationFilter.recover`).
+
+    Cheaper than :func:`~eifslam.estimation.smoothing.smooth` (no cost evaluations, no
+    damping): after :func:`correct_loop` the estimate is near the optimum and plain
+    Gauss-Newton converges. A pass whose solution is not finite is undone (the estimate
+    before it is kept, with its information) and the passes stop.
+
+    Parameters
+    ----------
+    filt : InformationFilter
+    passes : int
+        At most this many passes (>= 1).
+    tol : float
+        Stop once a pass changes no state entry by more than ``tol`` times the scale
+        (``max(1, scale prior length)``).
+
+    Returns
+    -------
+    int
+        Passes kept.
+    """
+    ref = 1.0 if filt.priors.scale is None else max(1.0, filt.priors.scale[2])
+    done = 0
+    for _ in range(int(passes)):
+        before = filt.x.copy()
+        filt.relinearise()
+        try:
+            filt.recover()
+        except EstimatorError:
+            filt.x[:] = before
+            filt.relinearise()
+            break
+        done += 1
+        if float(np.max(np.abs(filt.x - before))) <= tol * ref:
+            break
+    return done

@@ -213,19 +213,16 @@ class LoopCloser:
                                        self.config.zm_sigma_px)
         if sysc.loop_smooth_passes and not self._predicted(obs):
             # the loop's correction can be far from the linearisation point of the poses it
-            # moves (on the loop world 10-70 deg after a lap): first move the estimate as a
+            # moves (on the loop world 3.8 deg and 1 m after a lap): first move the estimate as a
             # pose graph would (the correction spread along the loop), then fuse the loop and
-            # relinearise every stored measurement there (paper III-E) a few passes, as
-            # ORB-SLAM optimises its essential graph after a loop; the incremental window
-            # is rebuilt next step
-            from ..estimation.loop_correction import correct_loop
-            from ..estimation.smoothing import smooth
+            # relinearise every stored measurement there (paper III-E) a few Gauss-Newton
+            # passes, as ORB-SLAM optimises its essential graph after a loop
+            from ..estimation.loop_correction import correct_loop, relinearise_all
 
             correct_loop(filt, j, k, chk.p, chk.q)
             fused = filt.fuse_features(obs, gate=False)
-            smooth(filt, sysc.loop_smooth_passes)
-            filt.set_estimate(filt.x.copy())
-            filt.recover_active()
+            relinearise_all(filt, sysc.loop_smooth_passes)
+            # x is now the full solution; the incremental window is rebuilt at the next step
         else:
             fused = filt.fuse_features(obs, gate=False)
             filt.recover_active()
