@@ -17,7 +17,12 @@ For each frame that became a state of the filter, the :class:`LoopCloser`
    the parallax a new feature needs);
 5. fuses the PnP inliers as ``Zm`` of the *old* map features in the current pose, not
    gated (after drift the filter is overconfident about where it is: the loop is trusted
-   on its geometric verification alone), and recovers;
+   on its geometric verification alone). When the estimate does not predict them (median
+   normalised innovation above the 99% bound) and ``loop_smooth_passes`` > 0, the
+   estimate is first moved along the loop
+   (:func:`~eifslam.estimation.loop_correction.correct_loop`) and every stored
+   measurement is relinearised there after the fusion
+   (:func:`~eifslam.estimation.loop_correction.relinearise_all`); otherwise it recovers;
 6. merges the tracks of the inlier keypoints that are not map features yet into the old
    features' tracks (:meth:`FrontEnd.join_tracks`), so that the following frames observe
    the old features through ordinary tracking (their ``Zm`` gated as usual). Keypoints
