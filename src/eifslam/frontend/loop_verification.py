@@ -33,7 +33,7 @@ from .matching import DescriptorMatcher, essential_ransac
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["PlaceCheck", "chi2_radius", "min_inliers", "verify_place"]
+__all__ = ["PlaceCheck", "chi2_radius", "match_to_map", "min_inliers", "verify_place"]
 
 #: 99% quantile of chi-square with 2 degrees of freedom (a pixel residual).
 CHI2_2DOF_99 = 9.21
@@ -104,10 +104,38 @@ class PlaceCheck:
     features: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
+def _map_required(camera: PinholeCamera, n: int, sigma_px: float, floor: int, alpha: float, iterations: int) -> int:
+    r = chi2_radius(sigma_px)
+    return min_inliers(n, np.pi * r * r / float(camera.width * camera.height), iterations, alpha, floor)
+
+
+def match_to_map(camera: PinholeCamera, matcher: DescriptorMatcher, desc_k: NDArray, desc_X: NDArray,
+                 sigma_px: float, floor: int = 25, alpha: float = 1e-6, iterations: int = 1000
+                 ) -> tuple[IntArray, IntArray, int]:
+    """Descriptor matches of the current frame to map features, and the PnP inlier count
+    :func:`verify_place` will require of them.
+
+    The first step of :func:`verify_place`, which needs no feature position: a caller can
+    refuse a candidate with too few matches (``len(ia) < required``) before it has
+    the positions.
+
+    Returns
+    -------
+    ia, ib : (M,) indices into ``desc_k`` and ``desc_X``.
+    required : int
+    """
+    if len(desc_k) < 2 or len(desc_X) < 2:
+        z = np.zeros(0, np.int64)
+        return z, z, max(int(floor), 1)
+    ia, ib = matcher.match(desc_k, np.asarray(desc_X, desc_k.dtype))
+    ia, ib = np.asarray(ia, np.int64), np.asarray(ib, np.int64)
+    return ia, ib, _map_required(camera, len(ia), sigma_px, floor, alpha, iterations)
+
+
 def verify_place(camera: PinholeCamera, matcher: DescriptorMatcher, uv_k: Array, desc_k: NDArray,
                  X: Array, desc_X: NDArray, uv_j: Array, desc_j: NDArray, sigma_px: float, p_j: Array, R_wc_j: Array, *,
-                 max_rot_deg: float = 2.0, min_parallax_deg: float = 2.0, floor: int = 25, alpha: float = 1e-6, iterations: int = 1000
-                 ) -> PlaceCheck:
+                 max_rot_deg: float = 2.0, min_parallax_deg: float = 2.0, floor: int = 25, alpha: float = 1e-6, iterations: int = 1000,
+                 matches: tuple[IntArray, IntArray] | None = None) -> PlaceCheck:
     """Verify that frame *k* sees the place of old map features and of old frame *j*.
 
     Parameters
@@ -133,6 +161,9 @@ def verify_place(camera: PinholeCamera, matcher: DescriptorMatcher, uv_k: Array,
         rotation undetermined.
     floor, alpha, iterations : see :func:`min_inliers`; ``iterations`` is also the RANSAC
         budget of each model.
+    matches : ((M,), (M,)) int arrays, optional
+        The matches of ``desc_k`` to ``desc_X`` when the caller already has them
+        (:func:`match_to_map`); rows of ``X`` that no match uses are then never read.
 
     Returns
     -------
@@ -142,9 +173,9 @@ def verify_place(camera: PinholeCamera, matcher: DescriptorMatcher, uv_k: Array,
     area = float(camera.width * camera.height)
     if len(desc_k) < 2 or len(desc_X) < 2:
         return PlaceCheck(False, "too few descriptors")
-    ia, ib = matcher.match(desc_k, np.asarray(desc_X, desc_k.dtype))
+    ia, ib, need = match_to_map(camera, matcher, desc_k, desc_X, sigma_px, floor, alpha, iterations) \
+        if matches is None else (*matches, _map_required(camera, len(matches[0]), sigma_px, floor, alpha, iterations))
     n = len(ia)
-    need = min_inliers(n, np.pi * r * r / area, iterations, alpha, floor)
     if n < need:
         return PlaceCheck(False, "too few matches to the map", matches=n, required=need)
     K = camera.K

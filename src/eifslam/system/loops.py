@@ -17,7 +17,12 @@ For each frame that became a state of the filter, the :class:`LoopCloser`
    the parallax a new feature needs);
 5. fuses the PnP inliers as ``Zm`` of the *old* map features in the current pose, not
    gated (after drift the filter is overconfident about where it is: the loop is trusted
-   on its geometric verification alone), and recovers;
+   on its geometric verification alone). When the estimate does not predict them (median
+   normalised innovation above the 99% bound) and ``loop_smooth_passes`` > 0, the
+   estimate is first moved along the loop
+   (:func:`~eifslam.estimation.loop_correction.correct_loop`) and every stored
+   measurement is relinearised there after the fusion
+   (:func:`~eifslam.estimation.loop_correction.relinearise_all`); otherwise it recovers;
 6. merges the tracks of the inlier keypoints that are not map features yet into the old
    features' tracks (:meth:`FrontEnd.join_tracks`), so that the following frames observe
    the old features through ordinary tracking (their ``Zm`` gated as usual). Keypoints
@@ -85,6 +90,9 @@ class LoopClosure:
 
 
 _FIELDS = [f for f in LoopClosure.__dataclass_fields__]
+
+CHI2_2DOF_99 = 9.21
+"""99% quantile of chi-square with 2 degrees of freedom (a pixel residual)."""
 
 
 class LoopCloser:
@@ -161,11 +169,10 @@ class LoopCloser:
         return self._verify_and_fuse(k, *best)
 
     def _verify_and_fuse(self, k: int, j: int, score: float, lo: int, hi: int) -> LoopClosure | None:
-        from ..frontend.loop_verification import verify_place
+        from ..frontend.loop_verification import match_to_map, verify_place
         from ..geometry.rotations import quat_conjugate, quat_log, quat_multiply, quat_to_rotmat
 
         filt, fe, sysc = self.filter, self.frontend, self.config.system
-        filt.complete_estimate()
         stored = set(fe.frame_ids)
         tids, descs = [], []
         for f in range(lo, hi + 1):  # the old map features seen around the candidate, with descriptors
@@ -185,13 +192,22 @@ class LoopCloser:
             return None
         fids = fids[keep].astype(np.int64)
         D = np.concatenate(descs)[first[keep]]
-        X = filt.x[filt.layout.feature_columns(fids)]
         fk, fj = fe.frame(k), fe.frame(j)
-        chk = verify_place(self.camera, fe.matcher, fk.uv, fe.descriptors(k), X, D, fj.uv, fe.descriptors(j),
+        dk = fe.descriptors(k)
+        # match first: most candidates fail here, and the positions of old (marginalised)
+        # features need the complete estimate, a back substitution over the whole state
+        ia, ib, need = match_to_map(self.camera, fe.matcher, dk, D, self.config.zm_sigma_px,
+                                    sysc.loop_min_inliers, sysc.loop_false_alarm)
+        if len(ia) < need:
+            self.rejected.append((k, j, "too few matches to the map"))
+            return None
+        filt.complete_estimate()
+        X = np.zeros((len(fids), 3))
+        X[ib] = filt.x[filt.layout.feature_columns(fids[ib])]
+        chk = verify_place(self.camera, fe.matcher, fk.uv, dk, X, D, fj.uv, fe.descriptors(j),
                            self.config.zm_sigma_px, filt.pose(j)[0], quat_to_rotmat(filt.pose(j)[1]),
                            max_rot_deg=sysc.agree_rotation_deg, min_parallax_deg=sysc.feature_parallax_deg,
-                           floor=sysc.loop_min_inliers,
-                           alpha=sysc.loop_false_alarm)
+                           floor=sysc.loop_min_inliers, alpha=sysc.loop_false_alarm, matches=(ia, ib))
         if not chk.ok:
             self.rejected.append((k, j, chk.reason))
             return None
@@ -200,17 +216,21 @@ class LoopCloser:
         dq = float(np.degrees(np.linalg.norm(quat_log(quat_multiply(quat_conjugate(q_f), chk.q)))))
         obs = FeatureObservations.make(np.full(len(chk.keypoints), k), fids[chk.features], fk.uv[chk.keypoints],
                                        self.config.zm_sigma_px)
-        fused = filt.fuse_features(obs, gate=False)
-        filt.recover_active()
-        if sysc.loop_smooth_passes:
+        if sysc.loop_smooth_passes and not self._predicted(obs):
             # the loop's correction can be far from the linearisation point of the poses it
-            # moves: relinearise every stored measurement (paper III-E) a few passes, as
-            # ORB-SLAM optimises after a loop; the incremental window is rebuilt next step
-            from ..estimation.smoothing import smooth
+            # moves (on the loop world 3.8 deg and 1 m after a lap): first move the estimate as a
+            # pose graph would (the correction spread along the loop), then fuse the loop and
+            # relinearise every stored measurement there (paper III-E) a few Gauss-Newton
+            # passes, as ORB-SLAM optimises its essential graph after a loop
+            from ..estimation.loop_correction import correct_loop, relinearise_all
 
-            filt.complete_estimate()
-            smooth(filt, sysc.loop_smooth_passes)
-            filt.set_estimate(filt.x.copy())
+            correct_loop(filt, j, k, chk.p, chk.q)
+            fused = filt.fuse_features(obs, gate=False)
+            relinearise_all(filt, sysc.loop_smooth_passes)
+            # x is now the full solution; the incremental window is rebuilt at the next step
+        else:
+            fused = filt.fuse_features(obs, gate=False)
+            filt.recover_active()
         # track merging: keypoints whose tracks are not map features yet continue the old
         # features' tracks, so the next frames observe the old features as usual (Zm, gated)
         free = ~filt.layout.has_features(fk.track_ids[chk.keypoints])
@@ -219,6 +239,14 @@ class LoopCloser:
                          chk.five_point_required, len(fused), dp, dq)
         self.closures.append(lc)
         return lc
+
+    def _predicted(self, obs: FeatureObservations) -> bool:
+        """Whether the filter's estimate already predicts the loop's ``Zm`` (the median
+        normalised innovation within the 99% chi-square bound of a pixel): the linearised
+        fusion is then valid and nothing needs relinearising (a loop found again a few
+        frames after one was corrected)."""
+        chi2 = self.filter.linearise_features(obs, gate=False)[5]
+        return bool(np.all(np.isfinite(chi2)) and np.median(chi2) <= CHI2_2DOF_99)
 
     # -- sessions -------------------------------------------------------------------
     def state_dict(self) -> dict:
