@@ -280,3 +280,28 @@ def test_detect_scale_gives_full_resolution_pixels():
     i_full = int(np.argmin(np.linalg.norm(full.uv_raw - np.array(centres[1]), axis=1)))
     i_half = int(np.argmin(np.linalg.norm(half.uv_raw - np.array(centres[1]), axis=1)))
     assert 0.7 < half.scale_px[i_half] / full.scale_px[i_full] < 1.4
+
+
+def test_the_run_holds_blas_to_its_setting_and_gives_it_back(scene_frames):
+    """``system.blas_threads`` (1 by default) holds the BLAS library's threads during
+    ``run_sequence`` (checked from inside the run) and restores them after; ``None``
+    leaves them alone; anything else is refused."""
+    from threadpoolctl import threadpool_info
+
+    def blas_threads() -> set[int]:
+        return {p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
+
+    if not blas_threads():
+        pytest.skip("no BLAS library found by threadpoolctl")
+    before = blas_threads()
+    seen: list[set[int]] = []
+    run_sequence(scene_frames, SlamConfig(), max_frames=3, quiet=True, on_frame=lambda r: seen.append(blas_threads()))
+    assert seen and all(s == {1} for s in seen)
+    assert blas_threads() == before
+    seen.clear()
+    run_sequence(scene_frames, SlamConfig.from_dict({"system": {"blas_threads": None}}), max_frames=2, quiet=True,
+                 on_frame=lambda r: seen.append(blas_threads()))
+    assert seen and all(s == before for s in seen)
+    for bad in (0, 1.5, True, "2"):
+        with pytest.raises(ConfigError, match="blas_threads"):
+            SlamConfig.from_dict({"system": {"blas_threads": bad}})

@@ -197,6 +197,13 @@ class SystemConfig:
     wide_baseline_relative : bool
         With fewer map features, fuse the relative pose of the wide-baseline matches
         instead (off: on templering it is 7 degrees off and costs accuracy).
+    blas_threads : int >= 1 or None
+        Threads of the BLAS library (NumPy and SciPy's dense algebra) while
+        :func:`~eifslam.system.runner.run_sequence` runs (1; None: the library's own
+        setting). The dense algebra of a frame is small, and OpenBLAS's extra threads spin
+        on the core the prefetch worker needs: on a 2-core machine 7scenes-redkitchen-a
+        (SIFT, filter) took 64 s with OpenBLAS's default and 42 s with 1 thread, kitti-seq1
+        13.9 s and 11.2 s (docs/realtime.md).
     """
 
     mode: Mode = Mode.SMOOTH
@@ -237,6 +244,7 @@ class SystemConfig:
     wide_baseline_references: int = 2
     wide_baseline_min_map_features: int = 6
     wide_baseline_relative: bool = False
+    blas_threads: int | None = 1
 
     def __post_init__(self) -> None:
         try:
@@ -271,6 +279,9 @@ class SystemConfig:
         v = self.wide_baseline_min_map_features
         if isinstance(v, bool) or not isinstance(v, int) or v < 4:
             raise ConfigError(f"system.wide_baseline_min_map_features must be an integer >= 4, got {v!r}")
+        v = self.blas_threads
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+            raise ConfigError(f"system.blas_threads must be an integer >= 1 or null, got {v!r}")
         if not isinstance(self.wide_baseline_relative, bool):
             raise ConfigError("system.wide_baseline_relative must be true or false, "
                               f"got {self.wide_baseline_relative!r}")

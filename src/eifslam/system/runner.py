@@ -273,8 +273,22 @@ def run_sequence(seq, config: SlamConfig, max_frames: int | None = None, scale: 
     EifslamError
         When ``slam`` was made with another camera than the sequence's.
     """
-    with stop_requests():
+    threads = (config if slam is None else slam.config).system.blas_threads
+    with stop_requests(), blas_limit(threads):
         return _run(seq, config, max_frames, scale, quiet, on_frame, slam, save_session, prefetch)
+
+
+@contextlib.contextmanager
+def blas_limit(threads: int | None) -> Iterator[None]:
+    """Hold the BLAS library to ``threads`` threads inside the block (threadpoolctl;
+    ``None``: leave it as it is). See ``SystemConfig.blas_threads``."""
+    if threads is None:
+        yield
+        return
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=int(threads), user_api="blas"):
+        yield
 
 
 def _run(seq, config: SlamConfig, max_frames: int | None, scale: tuple | None, quiet: bool,
