@@ -159,6 +159,12 @@ class Mapper:
         t2 = time.perf_counter()
         if recover:
             self.filter.recover_active()
+            # the states outside the recovery window keep the values they had when they
+            # left it unless back-substituted; the front end reads them (localisation on
+            # the map, re-observation, triangulation from old poses): O(n), 5 ms a
+            # keyframe on 7scenes; without it kitti-07 ended at 0.252 / 0.434 m
+            # (filter / smooth) instead of 0.240 / 0.242 m
+            self.filter.complete_estimate()
         t3 = time.perf_counter()
         timings.update(init=1e3 * (t1 - t0), fuse=1e3 * (t2 - t1), recover=1e3 * (t3 - t2))
 
