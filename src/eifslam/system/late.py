@@ -63,7 +63,8 @@ def place_late(slam: "Slam", frames: Sequence[int], reason: str, relative: bool 
         return 0
     filt = slam.filter
     t0 = time.perf_counter()
-    filt.recover_active()
+    if wide is None:  # place_wide recovered already
+        slam.mapper.recover()
     recover_ms = 1e3 * (time.perf_counter() - t0) / len(placed)
     for j, ref, timings in placed:
         p, q = filt.pose(j)

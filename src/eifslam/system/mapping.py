@@ -158,15 +158,20 @@ class Mapper:
         self.filter.fuse_features(batch)
         t2 = time.perf_counter()
         if recover:
-            self.filter.recover_active()
-            # the states outside the recovery window keep the values they had when they
-            # left it unless back-substituted; the front end reads them (localisation on
-            # the map, re-observation, triangulation from old poses): O(n), 5 ms a
-            # keyframe on 7scenes; without it kitti-07 ended at 0.252 / 0.434 m
-            # (filter / smooth) instead of 0.240 / 0.242 m
-            self.filter.complete_estimate()
+            self.recover()
         t3 = time.perf_counter()
         timings.update(init=1e3 * (t1 - t0), fuse=1e3 * (t2 - t1), recover=1e3 * (t3 - t2))
+
+    def recover(self) -> None:
+        """Recover the state after fusing: the active window, then every state outside it.
+
+        The states outside the recovery window keep the values they had when they left it
+        unless back-substituted, and the front end reads them (localisation on the map,
+        re-observation, triangulation from old poses): O(n), 5 ms a keyframe on 7scenes;
+        without it kitti-07 ended at 0.252 / 0.434 m (filter / smooth) instead of
+        0.240 / 0.242 m."""
+        self.filter.recover_active()
+        self.filter.complete_estimate()
 
     def new_features(self, k: int, ids: NDArray[np.int64], uv: Array) -> FeatureObservations:
         """``Zm`` of frame *k* for known features, plus every observation of features that
