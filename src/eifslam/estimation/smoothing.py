@@ -47,6 +47,9 @@ class SmoothingReport:
         (rejection round N)"`` (the next round raised it and was undone).
     reason : str
         Why smoothing stopped, one line.
+    noise_scale : float
+        ``s`` of robust smoothing's noise estimate (:func:`residual_noise_scale`): the
+        ``Zm`` gate was ``feature_chi2 * s**2`` (1: the given gate).
     """
 
     passes: int = 0
@@ -56,6 +59,7 @@ class SmoothingReport:
     stopped_by_cost: bool = False
     rejected_features: int = 0
     rejected_relative: int = 0
+    noise_scale: float = 1.0
     common_costs: list[float] = field(default_factory=list)
     kept: str = "smoothed"
     reason: str = ""
@@ -96,6 +100,41 @@ def measurement_cost(filt: InformationFilter, feature_chi2: float | None = None,
         chi2 = np.einsum("ni,nij,nj->n", innov, W, innov)
         total += float(np.sum(chi2 if relative_chi2 is None else np.minimum(chi2, relative_chi2)))
     return total
+
+
+def residual_noise_scale(filt: InformationFilter, features: FeatureObservations | None = None) -> float:
+    """How large the ``Zm`` noise is against the stated one, from the residuals at ``x``.
+
+    ``s = sigma_hat / sigma`` with ``sigma_hat**2 = median(chi2) / median(chi2_2) *
+    n / (n - p)``: the median of the normalised innovations squared (2 DOF each) against
+    the median of a chi-square with 2 DOF (``2 ln 2``), a robust variance estimate that
+    outliers barely move, corrected for the parameters the residuals were fitted with
+    (``n = 2 N`` residuals of ``N`` measurements; ``p`` = 3 per observed feature and 6
+    per observing pose). Only meaningful at an estimate fitted to these measurements (the
+    filter's, or smoothed).
+
+    Parameters
+    ----------
+    filt : InformationFilter
+    features : FeatureObservations, optional
+        The measurements (default: every stored ``Zm``).
+
+    Returns
+    -------
+    float
+        ``s > 0``; 1.0 when there are too few measurements to tell (``n <= 2 p``).
+    """
+    obs = filt.store.all_features() if features is None else features
+    if not len(obs):
+        return 1.0
+    _, _, _, _, _, chi2 = filt.linearise_features(obs, gate=False)
+    chi2 = chi2[np.isfinite(chi2)]
+    n = 2 * len(chi2)
+    p = 3 * len(np.unique(obs.feature)) + 6 * len(np.unique(obs.pose))
+    if n <= 2 * p or not len(chi2):
+        return 1.0
+    s2 = float(np.median(chi2)) / (2.0 * np.log(2.0)) * n / (n - p)
+    return float(np.sqrt(s2)) if np.isfinite(s2) and s2 > 0 else 1.0
 
 
 def reject_outliers(filt: InformationFilter, feature_chi2: float | None, relative_chi2: float | None,
@@ -150,7 +189,7 @@ def _damped_solve(filt: InformationFilter, x0: np.ndarray, lam: float) -> np.nda
 
 def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
            feature_chi2: float | None = None, relative_chi2: float | None = None,
-           max_rounds: int = 4) -> SmoothingReport:
+           max_rounds: int = 4, estimate_noise: bool = False) -> SmoothingReport:
     """Relinearise and recover until the update is small (paper III-E); never worse than
     the filter's estimate by the cost.
 
@@ -190,11 +229,20 @@ def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
         Gates of :func:`reject_outliers` (``None``: keep every measurement of that kind).
     max_rounds : int
         Robust smoothing: at most this many rejection rounds.
+    estimate_noise : bool
+        Robust smoothing: scale the ``Zm`` gate to the noise the measurements show,
+        ``feature_chi2 * min(1, s**2)`` with ``s`` from :func:`residual_noise_scale` at the
+        filter's estimate (never looser than the gate given; ``report.noise_scale``). The
+        stated pixel noise is a prior guess; a gate set on it passes, on precise images,
+        matches many standard deviations off.
     """
     if max_passes < 1:
         raise EstimatorError("smoothing needs at least one pass")
     rep = SmoothingReport()
     robust = feature_chi2 is not None or relative_chi2 is not None
+    if estimate_noise and feature_chi2 is not None:
+        rep.noise_scale = min(1.0, residual_noise_scale(filt))
+        feature_chi2 = feature_chi2 * rep.noise_scale**2
     obs0, rel0 = filt.store.all_features(), list(filt.store.relative)
     feats0 = list(filt.store.features)
     x0, I0, i0 = filt.x.copy(), filt.info.matrix().copy(), filt.info.vector.copy()

@@ -78,6 +78,14 @@ class SystemConfig:
         ``relative_gate_chi2`` (worst first), then the ``Zm`` that fail the filter's
         ``gate_chi2``, at the smoothed estimate, and smooths again
         (:func:`eifslam.smoothing.reject_outliers`); False relinearises every fused one.
+    smoothing_noise_estimate : bool
+        Robust smoothing gates ``Zm`` against the pixel noise the measurements show rather
+        than the stated ``sigma_px``: the gate is scaled by ``min(1, s**2)``, ``s`` the
+        robust, degrees-of-freedom-corrected ratio of the residuals at the filter's
+        estimate to ``sigma_px`` (:func:`eifslam.smoothing.residual_noise_scale`). On the
+        shared sets ``s`` is 0.11-0.7 (the SIFT keypoints are far better than 1 px), and
+        the 3-sigma gate at 1 px kept matches 10-20 true standard deviations off
+        (docs/estimator.md, "Noise from the residuals"). True (default).
     reobserve_radius_px : float or None
         Map features that frame-to-frame tracking lost are searched for again in each
         new frame within this many pixels of where the pose guess projects them
@@ -219,6 +227,7 @@ class SystemConfig:
     relative_gate_chi2: float | None = 50.0
     relative_gate_pose_uncertainty: bool = False
     robust_smoothing: bool = True
+    smoothing_noise_estimate: bool = True
     reobserve_radius_px: float | None = None
     relocalise_top: int = 5
     min_map_features: int = 12

@@ -359,7 +359,8 @@ class Slam:
         sysc = self.config.system
         gates = dict(feature_chi2=self.filter.config.gate_chi2, relative_chi2=sysc.relative_gate_chi2) \
             if sysc.robust_smoothing else {}
-        self.smoothing = smooth(self.filter, max_passes or sysc.smooth_passes, **gates)
+        self.smoothing = smooth(self.filter, max_passes or sysc.smooth_passes,
+                                estimate_noise=sysc.smoothing_noise_estimate, **gates)
         return self.smoothing
 
     def bundle_adjust(self, config: BAConfig | None = None) -> BAResult:
