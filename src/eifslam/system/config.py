@@ -57,9 +57,12 @@ class SystemConfig:
         map.
     sigma_px : float or None
         Standard deviation of a map feature's pixel measurement ``Zm``; None (default):
-        1 px for float-descriptor detectors (SIFT, SURF), 2 px for binary ones (ORB,
-        AKAZE), whose keypoints come from coarser pyramid levels (on kitti-seq1 ORB lost
-        the map at 1 px with the 3-px gate). See :meth:`SlamConfig.zm_sigma_px`.
+        the front end's ``sigma_px`` (1 px), the keypoint noise its unscented transform
+        gives the relative poses, for every detector. (It was 2 px for binary
+        descriptors, ORB and AKAZE, until every shared set measured better at 1 px with
+        ORB: filter ATE kitti-07 7.51 -> 0.742 m, 7scenes-redkitchen-a 0.087 -> 0.056 m,
+        kitti-seq1 0.202 -> 0.190 m, templering, fountain, herzjesu and castle 8-21%
+        lower; docs/frontend.md.) See :meth:`SlamConfig.zm_sigma_px`.
     scale_distance : float
         Length given to the distance between the first two poses (the scale gauge).
     relative_gate_chi2 : float or None
@@ -385,11 +388,12 @@ class SlamConfig:
 
     @property
     def zm_sigma_px(self) -> float:
-        """Standard deviation of ``Zm``, pixels: ``system.sigma_px``, or by default 1 px for
-        float descriptors (SIFT, SURF) and 2 px for binary ones (ORB, AKAZE)."""
+        """Standard deviation of ``Zm``, pixels: ``system.sigma_px``, or by default the
+        front end's keypoint noise ``frontend.sigma_px`` (the one its relative poses'
+        covariances are computed with), whatever the detector."""
         if self.system.sigma_px is not None:
             return float(self.system.sigma_px)
-        return 1.0 if self.float_descriptors else 2.0
+        return float(self.frontend.sigma_px)
 
     @property
     def reobserve_px(self) -> float:
