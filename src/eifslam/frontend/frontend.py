@@ -90,7 +90,7 @@ class FrontEnd(FrontEndState):
 
     def _make_matcher(self) -> DescriptorMatcher:
         c = self.config
-        return DescriptorMatcher(c.ratio, c.mutual, c.flann_trees, c.flann_checks)
+        return DescriptorMatcher(c.ratio, c.mutual, c.flann_trees, c.flann_checks, c.binary_index)
 
     # ------------------------------------------------------------------ queries
     @property
@@ -413,10 +413,13 @@ class FrontEnd(FrontEndState):
         Dk = self._desc[fid]
         # Lowe's ratio test over the whole frame (the radius only checks where the nearest
         # descriptor is): nearest and second-nearest keypoint of each track's descriptor
-        knn = self._matcher.knn(D.astype(Dk.dtype), Dk, 2)
-        best = np.array([m[0].trainIdx if len(m) == 2 else 0 for m in knn], np.int64)
-        d1 = np.array([m[0].distance if len(m) == 2 else np.inf for m in knn])
-        d2 = np.array([m[1].distance if len(m) == 2 else 0.0 for m in knn])
+        # (the frame's index when it is kept from matching: the newest frames')
+        index = self._index.get(fid)
+        nn, dd = (index if index is not None else self._matcher.index(Dk)).knn(D.astype(Dk.dtype), 2)
+        two = nn[:, 1] >= 0
+        best = np.where(two, nn[:, 0], 0)
+        d1 = np.where(two, dd[:, 0], np.inf)
+        d2 = np.where(two, dd[:, 1], 0.0)
         ok = (d1 < ratio * d2) & (np.linalg.norm(fr.feats.uv[best] - uv_predicted, axis=1) <= radius_px)
         kid = self._tracks.resolve(fr.raw_ids)
         fresh = self._tracks.in_map(kid) & (self._tracks.length(kid) == 1)

@@ -10,10 +10,15 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .config import BINARY_INDEXES
+
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 __all__ = ["DescriptorIndex", "DescriptorMatcher", "essential_ransac"]
+
+#: FLANN LSH index of binary descriptors (the parameters OpenCV's documentation suggests).
+LSH_PARAMS = {"algorithm": 6, "table_number": 6, "key_size": 12, "multi_probe_level": 1}
 
 _EMPTY = (np.zeros(0, np.int64), np.zeros(0, np.int64))
 
@@ -21,24 +26,36 @@ _EMPTY = (np.zeros(0, np.int64), np.zeros(0, np.int64))
 class DescriptorIndex:
     """The descriptors of one keypoint set, prepared once for nearest-neighbour queries.
 
-    Float descriptors (SIFT, SURF) get a FLANN k-d forest, built on the first query and
-    kept, so a frame's index serves every query against it (as the train set of the next
-    frames' matches and in the mutual checks). Binary descriptors (ORB, AKAZE) are searched
-    by brute force (Hamming), which has nothing to build.
+    Float descriptors (SIFT, SURF) get a FLANN k-d forest, built once (:meth:`build`, or
+    on the first query) and kept, so a frame's index serves every query against it (as the
+    train set of the next frames' matches and in the mutual checks). Binary descriptors
+    (ORB, AKAZE) are searched exactly by brute force (Hamming), which has nothing to build,
+    or with ``binary="lsh"`` in a FLANN locality-sensitive hashing index (approximate,
+    like the k-d forest).
 
     Parameters
     ----------
     descriptors : (N, D) ndarray
         ``uint8`` binary or float descriptors.
     trees, checks : int
-        FLANN randomised k-d trees and leaves visited per query (float descriptors).
+        FLANN randomised k-d trees (float descriptors) and leaves visited per query.
+    binary : {"bruteforce", "lsh"}
+        Search of binary descriptors.
     """
 
-    def __init__(self, descriptors: NDArray, trees: int = 4, checks: int = 48) -> None:
+    def __init__(self, descriptors: NDArray, trees: int = 4, checks: int = 48, binary: str = "bruteforce") -> None:
+        if binary not in BINARY_INDEXES:
+            raise ValueError(f"binary index must be one of {BINARY_INDEXES}, got {binary!r}")
         self.binary = descriptors.dtype == np.uint8
         self.descriptors = np.ascontiguousarray(descriptors if self.binary else np.asarray(descriptors, np.float32))
         self._trees, self._checks = int(trees), int(checks)
+        self._lsh = self.binary and binary == "lsh"
         self._flann = None
+
+    @property
+    def prebuilt(self) -> bool:
+        """Whether the index has a structure worth keeping (FLANN), rather than a brute-force search."""
+        return self._lsh or not self.binary
 
     def __len__(self) -> int:
         return len(self.descriptors)
@@ -46,8 +63,9 @@ class DescriptorIndex:
     def build(self) -> None:
         """Build the FLANN index now (else on the first query; nothing for binary descriptors).
         Its random trees are drawn from OpenCV's generator (``cv2.setRNGSeed``)."""
-        if self._flann is None and not self.binary and len(self.descriptors):
-            self._flann = cv2.flann_Index(self.descriptors, {"algorithm": 1, "trees": self._trees})
+        if self._flann is None and self.prebuilt and len(self.descriptors):
+            params = LSH_PARAMS if self._lsh else {"algorithm": 1, "trees": self._trees}
+            self._flann = cv2.flann_Index(self.descriptors, dict(params))
 
     def knn(self, q: NDArray, k: int) -> tuple[IntArray, Array]:
         """The ``k`` nearest indexed descriptors of each query row.
@@ -69,7 +87,11 @@ class DescriptorIndex:
         kk = min(int(k), n)
         if m == 0 or kk == 0:
             return idx, dist
-        if self.binary:
+        if self._lsh:
+            self.build()
+            i, d = self._flann.knnSearch(np.ascontiguousarray(q, np.uint8), kk, params={"checks": self._checks})
+            d = d.astype(np.float64)
+        elif self.binary:
             d, i = cv2.batchDistance(np.ascontiguousarray(q, np.uint8), self.descriptors, cv2.CV_32S,
                                      normType=cv2.NORM_HAMMING, K=kk)
             d = d.astype(np.float64)
@@ -101,9 +123,13 @@ class DescriptorMatcher:
         Randomised k-d trees of the FLANN index (float descriptors).
     checks : int
         Leaves visited per FLANN query.
+    binary_index : {"bruteforce", "lsh"}
+        Search of binary descriptors by :meth:`match` (:class:`DescriptorIndex`).
     """
 
-    def __init__(self, ratio: float = 0.8, mutual: bool = True, trees: int = 4, checks: int = 48) -> None:
+    def __init__(self, ratio: float = 0.8, mutual: bool = True, trees: int = 4, checks: int = 48,
+                 binary_index: str = "bruteforce") -> None:
+        self.binary_index = str(binary_index)
         self.ratio = float(ratio)
         self.mutual = bool(mutual)
         self.trees, self.checks = int(trees), int(checks)
@@ -112,7 +138,7 @@ class DescriptorMatcher:
 
     def index(self, descriptors: NDArray) -> DescriptorIndex:
         """A :class:`DescriptorIndex` of ``descriptors (N, D)`` with this matcher's FLANN settings."""
-        return DescriptorIndex(descriptors, self.trees, self.checks)
+        return DescriptorIndex(descriptors, self.trees, self.checks, self.binary_index)
 
     def knn(self, q: NDArray, t: NDArray, k: int) -> list:
         """The ``k`` nearest descriptors of ``t (N2, D)`` for each of ``q (N1, D)``:
@@ -137,8 +163,8 @@ class DescriptorMatcher:
             nearest neighbours are searched among all rows, and a match is kept only when
             the nearest neighbour is free (the ratio test then also counts the rows that
             are not free as second-nearest). Without one the search runs on the free rows
-            only. Indices of binary descriptors are not used (brute force on the free rows
-            costs less than on all).
+            only. Brute-force indices of binary descriptors are not used (a search of the
+            free rows costs less than one of all).
 
         Returns
         -------
@@ -170,7 +196,7 @@ class DescriptorMatcher:
                 k: int) -> tuple[IntArray, Array]:
         """``k`` nearest rows of ``t`` for ``q``, in ``t``'s numbering, -1 where the nearest
         is not free (with a full ``index``) or missing."""
-        if index is not None and not index.binary and len(index) == len(t):
+        if index is not None and index.prebuilt and len(index) == len(t):
             nn, dd = index.knn(q, k)
             taken = (nn[:, 0] >= 0) & ~free[np.maximum(nn[:, 0], 0)]
             nn[taken, 0] = -1
