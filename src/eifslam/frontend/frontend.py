@@ -313,10 +313,8 @@ class FrontEnd(FrontEndState):
                            {"detect": float(feats.detect_ms), "match": (t2 - t1) * 1e3})
 
     def _built_index(self, descriptors: NDArray, fid: int) -> DescriptorIndex:
-        """The :class:`DescriptorIndex` of frame ``fid``'s descriptors, built now. With a
-        seed, OpenCV's generator (which draws FLANN's random trees) is set to ``seed + fid``
-        first: the same trees whenever it is built, so a loaded session (whose indices were
-        not saved) matches as the uninterrupted run did."""
+        """Frame ``fid``'s :class:`DescriptorIndex`, built now from OpenCV's generator set to
+        ``seed + fid`` (FLANN's random trees): the same whenever built (e.g. after loading)."""
         if self.config.seed is not None:
             cv2.setRNGSeed(int(self.config.seed) + int(fid))
         index = self._matcher.index(descriptors)
@@ -343,11 +341,8 @@ class FrontEnd(FrontEndState):
     def _extend_tracks(self, feats: Features, ids: IntArray, p: int, index: DescriptorIndex) -> int:
         """Give unassigned keypoints of the new frame the track ids of frame ``p``'s matches.
 
-        ``index`` is the new frame's :class:`DescriptorIndex`; frame ``p``'s was kept
-        from when it was added. Both serve the search in both directions (the matches and
-        the mutual check): the nearest neighbours are searched among all keypoints of the
-        other frame, and a keypoint whose nearest one is taken by a track is not matched.
-        """
+        With the new frame's ``index`` and frame ``p``'s (kept), in both directions: a
+        keypoint whose nearest neighbour is taken by a track is not matched."""
         prev = self._frames[p]
         pid = self._tracks.resolve(prev.raw_ids)
         free_new = ids < 0
@@ -413,9 +408,8 @@ class FrontEnd(FrontEndState):
         Dk = self._desc[fid]
         # Lowe's ratio test over the whole frame (the radius only checks where the nearest
         # descriptor is): nearest and second-nearest keypoint of each track's descriptor
-        # (the frame's index when it is kept from matching: the newest frames')
-        index = self._index.get(fid)
-        nn, dd = (index if index is not None else self._matcher.index(Dk)).knn(D.astype(Dk.dtype), 2)
+        index = self._index[fid] if fid in self._index else self._matcher.index(Dk)  # kept from matching
+        nn, dd = index.knn(D.astype(Dk.dtype), 2)
         two = nn[:, 1] >= 0
         best = np.where(two, nn[:, 0], 0)
         d1 = np.where(two, dd[:, 0], np.inf)
