@@ -20,6 +20,9 @@ __all__ = ["DescriptorIndex", "DescriptorMatcher", "essential_ransac"]
 #: FLANN LSH index of binary descriptors (the parameters OpenCV's documentation suggests).
 LSH_PARAMS = {"algorithm": 6, "table_number": 6, "key_size": 12, "multi_probe_level": 1}
 
+#: Neighbours searched in a prebuilt index of all rows to find the nearest free ones.
+FREE_SEARCH = 8
+
 _EMPTY = (np.zeros(0, np.int64), np.zeros(0, np.int64))
 
 
@@ -159,11 +162,9 @@ class DescriptorMatcher:
         free1, free2 : (N1,), (N2,) bool, optional
             Only these rows may be matched (default: all).
         index1, index2 : DescriptorIndex, optional
-            Prebuilt indices of all of ``d1`` / ``d2`` (float descriptors). When given, the
-            nearest neighbours are searched among all rows, and a match is kept only when
-            the nearest neighbour is free (the ratio test then also counts the rows that
-            are not free as second-nearest). Without one the search runs on the free rows
-            only. Brute-force indices of binary descriptors are not used (a search of the
+            Prebuilt indices of all of ``d1`` / ``d2``. When given, the nearest free rows
+            are taken from a search of all rows (``_search``); without one the search runs
+            on the free rows only: the same matches up to FLANN's approximation. Brute-force indices of binary descriptors are not used (a search of the
             free rows costs less than one of all).
 
         Returns
@@ -176,7 +177,7 @@ class DescriptorMatcher:
             return _EMPTY
         rows1 = np.flatnonzero(f1)
         nn, dd = self._search(d1[rows1], d2, f2, index2, 2)
-        ok = (nn[:, 0] >= 0) & (nn[:, 1] >= 0) & (dd[:, 0] < self.ratio * dd[:, 1])
+        ok = (nn[:, 0] >= 0) & np.isfinite(dd[:, 1]) & (dd[:, 0] < self.ratio * dd[:, 1])
         i1, i2 = rows1[ok], nn[ok, 0]
         if len(i1) == 0:
             return _EMPTY
@@ -194,13 +195,32 @@ class DescriptorMatcher:
 
     def _search(self, q: NDArray, t: NDArray, free: NDArray[np.bool_], index: DescriptorIndex | None,
                 k: int) -> tuple[IntArray, Array]:
-        """``k`` nearest rows of ``t`` for ``q``, in ``t``'s numbering, -1 where the nearest
-        is not free (with a full ``index``) or missing."""
+        """The ``k`` nearest free rows of ``t`` for each row of ``q``, in ``t``'s numbering.
+
+        With a prebuilt ``index`` of all of ``t``, the ``FREE_SEARCH`` nearest rows of all
+        are searched and the first ``k`` free ones kept: the free rows' own nearest
+        neighbours unless more than ``FREE_SEARCH - k`` taken rows are nearer. A free
+        neighbour not among them gets -1 and, as its distance, the farthest one searched
+        (a lower bound of its distance, so a ratio test against it is passed only when
+        the true one would be). Without an index the free rows are searched alone.
+        Missing neighbours (fewer rows): -1 and inf.
+        """
         if index is not None and index.prebuilt and len(index) == len(t):
-            nn, dd = index.knn(q, k)
-            taken = (nn[:, 0] >= 0) & ~free[np.maximum(nn[:, 0], 0)]
-            nn[taken, 0] = -1
-            return nn, dd
+            if free.all():
+                return index.knn(q, k)
+            nn, dd = index.knn(q, max(FREE_SEARCH, k))
+            ok = (nn >= 0) & free[np.maximum(nn, 0)]
+            rank = np.cumsum(ok, axis=1)
+            out_n = np.full((len(q), k), -1, np.int64)
+            out_d = np.full((len(q), k), np.inf)
+            bound = dd[:, -1] if len(t) > nn.shape[1] else np.full(len(q), np.inf)  # all searched: none left
+            for j in range(k):
+                hit = ok & (rank == j + 1)
+                row, col = np.nonzero(hit)
+                out_n[row, j], out_d[row, j] = nn[row, col], dd[row, col]
+                miss = ~hit.any(axis=1)
+                out_d[miss, j] = bound[miss]
+            return out_n, out_d
         rows = np.flatnonzero(free)
         sub = t if len(rows) == len(t) else t[rows]
         nn, dd = self.index(sub).knn(q, k)
