@@ -69,6 +69,23 @@ def test_rows_that_are_not_free_are_never_matched(with_index):
     assert np.mean(truth[i1] == i2) >= 0.97
 
 
+def test_free_rows_from_a_full_index_are_the_subset_matches():
+    """The nearest free rows taken from a search of all rows (prebuilt indices) give the
+    matches of a search of the free rows alone, also where the taken rows are the nearer
+    ones (here every taken row of d2 has a near copy in d1)."""
+    rng = np.random.default_rng(8)
+    d1, d2, truth = _pair(rng, n=800, shared=600, noise=0.08)
+    taken2 = np.zeros(len(d2), bool)
+    taken2[truth[truth >= 0][:300]] = True  # half of the true partners are taken already
+    free1 = rng.random(len(d1)) < 0.8  # rows of d1 whose partner is taken stay free: their nearest is taken
+    m = DescriptorMatcher(0.8, True)
+    a = m.match(d1, d2, free1, ~taken2)
+    b = m.match(d1, d2, free1, ~taken2, m.index(d1), m.index(d2))
+    pa, pb = set(zip(*a)), set(zip(*b))
+    assert len(pa) > 200
+    assert 0.95 <= len(pa & pb) / len(pa | pb) <= 1.0
+
+
 def test_binary_search_is_the_brute_force_matcher():
     rng = np.random.default_rng(6)
     d1, d2, _ = _pair(rng, n=300, shared=150, binary=True)
