@@ -85,7 +85,8 @@ class FrontEndConfig:
     binary_index : {"bruteforce", "lsh"}
         Search of binary descriptors (ORB, AKAZE) when frames are matched: exact Hamming
         brute force, or a FLANN locality-sensitive hashing index per frame, built once and
-        reused like the k-d forest of float descriptors (approximate).
+        reused like the k-d forest of float descriptors (approximate: a quarter off ORB's
+        matching, but one 7-Scenes run failed with it; docs/realtime.md. Not for use yet).
     match_window : int >= 1
         A new frame is matched against this many previous frames (1 = previous only; 3
         by default); older frames only see keypoints still unmatched, to recover tracks
