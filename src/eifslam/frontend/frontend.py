@@ -341,8 +341,8 @@ class FrontEnd(FrontEndState):
     def _extend_tracks(self, feats: Features, ids: IntArray, p: int, index: DescriptorIndex) -> int:
         """Give unassigned keypoints of the new frame the track ids of frame ``p``'s matches.
 
-        With the new frame's ``index`` and frame ``p``'s (kept), in both directions: a
-        keypoint whose nearest neighbour is taken by a track is not matched."""
+        Only free keypoints are matched (new ones not yet matched, old ones whose track is
+        not continued), searched in the new frame's ``index`` and frame ``p``'s (kept)."""
         prev = self._frames[p]
         pid = self._tracks.resolve(prev.raw_ids)
         free_new = ids < 0
