@@ -40,6 +40,7 @@ DETECTORS = tuple(d.value for d in Detector)
 COVARIANCE_METHODS = tuple(c.value for c in CovarianceMethod)
 COLOR_ORDERS = ("bgr", "rgb")
 RANSAC_METHODS = ("usac", "magsac", "ransac")
+BINARY_INDEXES = ("bruteforce", "lsh")
 
 
 @dataclass(frozen=True)
@@ -81,6 +82,11 @@ class FrontEndConfig:
         Randomised k-d trees of the FLANN index (float descriptors: SIFT, SURF).
     flann_checks : int >= 1
         Leaves FLANN visits per query (more: closer to exact nearest neighbours, slower).
+    binary_index : {"bruteforce", "lsh"}
+        Search of binary descriptors (ORB, AKAZE) when frames are matched: exact Hamming
+        brute force, or a FLANN locality-sensitive hashing index per frame, built once and
+        reused like the k-d forest of float descriptors (approximate: a quarter off ORB's
+        matching, but one 7-Scenes run failed with it; docs/realtime.md. Not for use yet).
     match_window : int >= 1
         A new frame is matched against this many previous frames (1 = previous only; 3
         by default); older frames only see keypoints still unmatched, to recover tracks
@@ -149,6 +155,7 @@ class FrontEndConfig:
     mutual: bool = True
     flann_trees: int = 4
     flann_checks: int = 48
+    binary_index: str = "bruteforce"
     match_window: int = 3
     ransac_threshold_px: float = 1.0
     ransac_confidence: float = 0.9999
@@ -182,6 +189,8 @@ class FrontEndConfig:
                 raise bad(key, f"must be one of {names}") from None
         if self.ransac_method not in RANSAC_METHODS:
             raise bad("ransac_method", f"must be one of {RANSAC_METHODS}")
+        if self.binary_index not in BINARY_INDEXES:
+            raise bad("binary_index", f"must be one of {BINARY_INDEXES}")
         if self.color_order not in COLOR_ORDERS:
             raise bad("color_order", f"must be one of {COLOR_ORDERS}")
         ints = {

@@ -20,7 +20,7 @@ from ..geometry.camera import PinholeCamera
 from ..errors import EstimatorError
 from .config import FrontEndConfig
 from .features import Features, detect_features, make_detector
-from .matching import DescriptorMatcher, essential_ransac
+from .matching import DescriptorIndex, DescriptorMatcher, essential_ransac
 from .relative_pose import estimate_relative_pose
 from .results import FrameFeatures, FrameResult, Reason, RelativePoseResult
 from .session_state import FrontEndState, StoredFrame
@@ -66,6 +66,7 @@ class FrontEnd(FrontEndState):
         self._tracks = TrackStore()
         self._frames: dict[int, StoredFrame] = {}
         self._desc: dict[int, NDArray] = {}
+        self._index: dict[int, DescriptorIndex] = {}  # the match window's descriptor indices
         self._order: list[int] = []
         self._last_frame = np.zeros(0, np.int64)  # per raw track id: last frame seen in
         self._last_kp = np.zeros(0, np.int64)  # ... and the keypoint index there
@@ -77,17 +78,19 @@ class FrontEnd(FrontEndState):
         state = self.__dict__.copy()
         state["_local"] = None
         state["_matcher"] = None
+        state["_index"] = {}  # FLANN indices do not pickle; rebuilt when next needed
         return state
 
     def __setstate__(self, state: dict) -> None:
         state.pop("_detector", None)  # sessions saved before detectors were per thread
         self.__dict__.update(state)
+        self.__dict__.setdefault("_index", {})
         self._local = threading.local()
         self._matcher = self._make_matcher()
 
     def _make_matcher(self) -> DescriptorMatcher:
         c = self.config
-        return DescriptorMatcher(c.ratio, c.mutual, c.flann_trees, c.flann_checks)
+        return DescriptorMatcher(c.ratio, c.mutual, c.flann_trees, c.flann_checks, c.binary_index)
 
     # ------------------------------------------------------------------ queries
     @property
@@ -281,9 +284,13 @@ class FrontEnd(FrontEndState):
         t1 = time.perf_counter()
         ids = np.full(len(feats), -1, np.int64)
         previous = [p for p in reversed(self._order) if p in self._desc][: self.config.match_window]
+        for p in reversed(previous):  # indices not kept (a loaded session): rebuilt as when added
+            if p not in self._index:
+                self._index[p] = self._built_index(self._desc[p], p)
+        index = self._built_index(feats.descriptors, fid)
         n_matches = 0
         for p in previous:
-            n_matches += self._extend_tracks(feats, ids, p)
+            n_matches += self._extend_tracks(feats, ids, p, index)
         new = ids < 0
         in_map = assign_to_map(feats.sign[new], feats.response[new], self.config.map_fraction)
         ids[new] = self._tracks.allocate(in_map)
@@ -292,6 +299,9 @@ class FrontEnd(FrontEndState):
         self._frames[fid] = StoredFrame(feats, ids)
         self._desc[fid] = feats.descriptors
         self._order.append(fid)
+        self._index[fid] = index
+        for p in [p for p in self._index if p not in previous[: self.config.match_window - 1] and p != fid]:
+            del self._index[p]  # only the next frame's match window keeps its index
         t2 = time.perf_counter()
         if len(feats) == 0:
             ok, reason = False, Reason.NO_FEATURES
@@ -302,11 +312,23 @@ class FrontEnd(FrontEndState):
         return FrameResult(fid, ok, reason, len(feats), int(n_matches), int(new.sum()),
                            {"detect": float(feats.detect_ms), "match": (t2 - t1) * 1e3})
 
+    def _built_index(self, descriptors: NDArray, fid: int) -> DescriptorIndex:
+        """Frame ``fid``'s :class:`DescriptorIndex`, built now from OpenCV's generator set to
+        ``seed + fid`` (FLANN's random trees): the same whenever built (e.g. after loading)."""
+        if self.config.seed is not None:
+            cv2.setRNGSeed(int(self.config.seed) + int(fid))
+        index = self._matcher.index(descriptors)
+        index.build()
+        return index
+
     def _epipolar_matches(
-        self, uv_a: Array, d_a: NDArray, uv_b: Array, d_b: NDArray
+        self, uv_a: Array, d_a: NDArray, uv_b: Array, d_b: NDArray,
+        free_a: NDArray[np.bool_] | None = None, free_b: NDArray[np.bool_] | None = None,
+        index_a: DescriptorIndex | None = None, index_b: DescriptorIndex | None = None,
     ) -> tuple[IntArray, IntArray]:
-        """Descriptor matches between two keypoint sets that pass the epipolar RANSAC."""
-        ia, ib = self._matcher.match(d_a, d_b)
+        """Descriptor matches between two keypoint sets that pass the epipolar RANSAC
+        (only the ``free`` rows, prebuilt indices: :meth:`DescriptorMatcher.match`)."""
+        ia, ib = self._matcher.match(d_a, d_b, free_a, free_b, index_a, index_b)
         if len(ia) < self.config.min_matches:
             return ia[:0], ib[:0]
         _, inl = essential_ransac(uv_b[ib], uv_a[ia], self.camera.K,
@@ -316,19 +338,20 @@ class FrontEnd(FrontEndState):
             return ia[:0], ib[:0]
         return ia[inl], ib[inl]
 
-    def _extend_tracks(self, feats: Features, ids: IntArray, p: int) -> int:
-        """Give unassigned keypoints of the new frame the track ids of frame ``p``'s matches."""
+    def _extend_tracks(self, feats: Features, ids: IntArray, p: int, index: DescriptorIndex) -> int:
+        """Give unassigned keypoints of the new frame the track ids of frame ``p``'s matches.
+
+        Only free keypoints are matched (new ones not yet matched, old ones whose track is
+        not continued), searched in the new frame's ``index`` and frame ``p``'s (kept)."""
         prev = self._frames[p]
         pid = self._tracks.resolve(prev.raw_ids)
-        free_new = np.flatnonzero(ids < 0)
-        free_old = np.flatnonzero(~np.isin(pid, ids[ids >= 0]))
-        if len(free_new) < 5 or len(free_old) < 5:
+        free_new = ids < 0
+        free_old = ~np.isin(pid, ids[ids >= 0])
+        if free_new.sum() < 5 or free_old.sum() < 5:
             return 0
-        ia, ib = self._epipolar_matches(
-            feats.uv[free_new], feats.descriptors[free_new],
-            prev.feats.uv[free_old], self._desc[p][free_old],
-        )
-        ids[free_new[ia]] = pid[free_old[ib]]
+        ia, ib = self._epipolar_matches(feats.uv, feats.descriptors, prev.feats.uv, self._desc[p],
+                                        free_new, free_old, index, self._index[p])
+        ids[ia] = pid[ib]
         return int(len(ia))
 
     def _note_last_seen(self, fid: int, ids: IntArray) -> None:
@@ -385,10 +408,12 @@ class FrontEnd(FrontEndState):
         Dk = self._desc[fid]
         # Lowe's ratio test over the whole frame (the radius only checks where the nearest
         # descriptor is): nearest and second-nearest keypoint of each track's descriptor
-        knn = self._matcher.knn(D.astype(Dk.dtype), Dk, 2)
-        best = np.array([m[0].trainIdx if len(m) == 2 else 0 for m in knn], np.int64)
-        d1 = np.array([m[0].distance if len(m) == 2 else np.inf for m in knn])
-        d2 = np.array([m[1].distance if len(m) == 2 else 0.0 for m in knn])
+        index = self._index[fid] if fid in self._index else self._matcher.index(Dk)  # kept from matching
+        nn, dd = index.knn(D.astype(Dk.dtype), 2)
+        two = nn[:, 1] >= 0
+        best = np.where(two, nn[:, 0], 0)
+        d1 = np.where(two, dd[:, 0], np.inf)
+        d2 = np.where(two, dd[:, 1], 0.0)
         ok = (d1 < ratio * d2) & (np.linalg.norm(fr.feats.uv[best] - uv_predicted, axis=1) <= radius_px)
         kid = self._tracks.resolve(fr.raw_ids)
         fresh = self._tracks.in_map(kid) & (self._tracks.length(kid) == 1)
@@ -467,6 +492,7 @@ class FrontEnd(FrontEndState):
         track ids stay available)."""
         self._get(frame_id)
         self._desc.pop(int(frame_id), None)
+        self._index.pop(int(frame_id), None)
 
 
 def set_opencv_threads(n: int) -> None:

@@ -10,19 +10,111 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .config import BINARY_INDEXES
+
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["DescriptorMatcher", "essential_ransac"]
+__all__ = ["DescriptorIndex", "DescriptorMatcher", "essential_ransac"]
+
+#: FLANN LSH index of binary descriptors (the parameters OpenCV's documentation suggests).
+LSH_PARAMS = {"algorithm": 6, "table_number": 6, "key_size": 12, "multi_probe_level": 1}
+
+#: Neighbours searched in a prebuilt index of all rows to find the nearest free ones.
+FREE_SEARCH = 8
 
 _EMPTY = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+
+
+class DescriptorIndex:
+    """The descriptors of one keypoint set, prepared once for nearest-neighbour queries.
+
+    Float descriptors (SIFT, SURF) get a FLANN k-d forest, built once (:meth:`build`, or
+    on the first query) and kept, so a frame's index serves every query against it (as the
+    train set of the next frames' matches and in the mutual checks). Binary descriptors
+    (ORB, AKAZE) are searched exactly by brute force (Hamming), which has nothing to build,
+    or with ``binary="lsh"`` in a FLANN locality-sensitive hashing index (approximate,
+    like the k-d forest).
+
+    Parameters
+    ----------
+    descriptors : (N, D) ndarray
+        ``uint8`` binary or float descriptors.
+    trees, checks : int
+        FLANN randomised k-d trees (float descriptors) and leaves visited per query.
+    binary : {"bruteforce", "lsh"}
+        Search of binary descriptors.
+    """
+
+    def __init__(self, descriptors: NDArray, trees: int = 4, checks: int = 48, binary: str = "bruteforce") -> None:
+        if binary not in BINARY_INDEXES:
+            raise ValueError(f"binary index must be one of {BINARY_INDEXES}, got {binary!r}")
+        self.binary = descriptors.dtype == np.uint8
+        self.descriptors = np.ascontiguousarray(descriptors if self.binary else np.asarray(descriptors, np.float32))
+        self._trees, self._checks = int(trees), int(checks)
+        self._lsh = self.binary and binary == "lsh"
+        self._flann = None
+
+    @property
+    def prebuilt(self) -> bool:
+        """Whether the index has a structure worth keeping (FLANN), rather than a brute-force search."""
+        return self._lsh or not self.binary
+
+    def __len__(self) -> int:
+        return len(self.descriptors)
+
+    def build(self) -> None:
+        """Build the FLANN index now (else on the first query; nothing for binary descriptors).
+        Its random trees are drawn from OpenCV's generator (``cv2.setRNGSeed``)."""
+        if self._flann is None and self.prebuilt and len(self.descriptors):
+            params = LSH_PARAMS if self._lsh else {"algorithm": 1, "trees": self._trees}
+            self._flann = cv2.flann_Index(self.descriptors, dict(params))
+
+    def knn(self, q: NDArray, k: int) -> tuple[IntArray, Array]:
+        """The ``k`` nearest indexed descriptors of each query row.
+
+        Parameters
+        ----------
+        q : (M, D) descriptors of the same kind.
+        k : int >= 1
+
+        Returns
+        -------
+        idx : (M, k) int64 rows of the indexed descriptors, nearest first; -1 where there
+            are fewer than ``k`` (or FLANN found fewer).
+        dist : (M, k) float64 distances (L2 for float, Hamming for binary); inf where ``idx`` is -1.
+        """
+        m, n = len(q), len(self.descriptors)
+        idx = np.full((m, k), -1, np.int64)
+        dist = np.full((m, k), np.inf)
+        kk = min(int(k), n)
+        if m == 0 or kk == 0:
+            return idx, dist
+        if self._lsh:
+            self.build()
+            i, d = self._flann.knnSearch(np.ascontiguousarray(q, np.uint8), kk, params={"checks": self._checks})
+            d = d.astype(np.float64)
+        elif self.binary:
+            d, i = cv2.batchDistance(np.ascontiguousarray(q, np.uint8), self.descriptors, cv2.CV_32S,
+                                     normType=cv2.NORM_HAMMING, K=kk)
+            d = d.astype(np.float64)
+        else:
+            self.build()
+            i, d = self._flann.knnSearch(np.ascontiguousarray(q, np.float32), kk, params={"checks": self._checks})
+            d = np.sqrt(np.maximum(d.astype(np.float64), 0.0))  # FLANN returns squared L2
+        i = np.asarray(i, np.int64).reshape(m, kk)
+        d = np.asarray(d, np.float64).reshape(m, kk)
+        bad = (i < 0) | (i >= n)
+        i[bad], d[bad] = -1, np.inf
+        idx[:, :kk], dist[:, :kk] = i, d
+        return idx, dist
 
 
 class DescriptorMatcher:
     """Nearest-neighbour descriptor matching with Lowe's ratio test and a mutual check.
 
     Float descriptors (SIFT, SURF) use a FLANN k-d forest; binary ones (ORB, AKAZE) a
-    brute-force Hamming matcher.
+    brute-force Hamming search (:class:`DescriptorIndex`).
 
     Parameters
     ----------
@@ -34,13 +126,22 @@ class DescriptorMatcher:
         Randomised k-d trees of the FLANN index (float descriptors).
     checks : int
         Leaves visited per FLANN query.
+    binary_index : {"bruteforce", "lsh"}
+        Search of binary descriptors by :meth:`match` (:class:`DescriptorIndex`).
     """
 
-    def __init__(self, ratio: float = 0.8, mutual: bool = True, trees: int = 4, checks: int = 48) -> None:
+    def __init__(self, ratio: float = 0.8, mutual: bool = True, trees: int = 4, checks: int = 48,
+                 binary_index: str = "bruteforce") -> None:
+        self.binary_index = str(binary_index)
         self.ratio = float(ratio)
         self.mutual = bool(mutual)
-        self._flann = cv2.FlannBasedMatcher({"algorithm": 1, "trees": int(trees)}, {"checks": int(checks)})
+        self.trees, self.checks = int(trees), int(checks)
+        self._flann = cv2.FlannBasedMatcher({"algorithm": 1, "trees": self.trees}, {"checks": self.checks})
         self._hamming = cv2.BFMatcher(cv2.NORM_HAMMING)
+
+    def index(self, descriptors: NDArray) -> DescriptorIndex:
+        """A :class:`DescriptorIndex` of ``descriptors (N, D)`` with this matcher's FLANN settings."""
+        return DescriptorIndex(descriptors, self.trees, self.checks, self.binary_index)
 
     def knn(self, q: NDArray, t: NDArray, k: int) -> list:
         """The ``k`` nearest descriptors of ``t (N2, D)`` for each of ``q (N1, D)``:
@@ -50,36 +151,80 @@ class DescriptorMatcher:
             return self._hamming.knnMatch(q, t, k=k)
         return self._flann.knnMatch(np.asarray(q, np.float32), np.asarray(t, np.float32), k=k)
 
-    def match(self, d1: NDArray, d2: NDArray) -> tuple[IntArray, IntArray]:
+    def match(self, d1: NDArray, d2: NDArray, free1: NDArray[np.bool_] | None = None,
+              free2: NDArray[np.bool_] | None = None, index1: DescriptorIndex | None = None,
+              index2: DescriptorIndex | None = None) -> tuple[IntArray, IntArray]:
         """Match descriptors ``d1 (N1, D)`` to ``d2 (N2, D)``.
+
+        Parameters
+        ----------
+        d1, d2 : (N1, D), (N2, D) descriptors.
+        free1, free2 : (N1,), (N2,) bool, optional
+            Only these rows may be matched (default: all).
+        index1, index2 : DescriptorIndex, optional
+            Prebuilt indices of all of ``d1`` / ``d2``. When given, the nearest free rows
+            are taken from a search of all rows (``_search``); without one the search runs
+            on the free rows only: the same matches up to FLANN's approximation. Brute-force indices of binary descriptors are not used (a search of the
+            free rows costs less than one of all).
 
         Returns
         -------
         (idx1, idx2) : two (M,) int64 arrays of matched rows, each row used at most once.
         """
-        if len(d1) < 2 or len(d2) < 2:
+        f1 = np.ones(len(d1), bool) if free1 is None else np.asarray(free1, bool)
+        f2 = np.ones(len(d2), bool) if free2 is None else np.asarray(free2, bool)
+        if f1.sum() < 2 or f2.sum() < 2:
             return _EMPTY
-        knn = self.knn(d1, d2, 2)
-        q, tr = [], []
-        for m in knn:
-            if len(m) == 2 and m[0].distance < self.ratio * m[1].distance:
-                q.append(m[0].queryIdx)
-                tr.append(m[0].trainIdx)
-        i1 = np.asarray(q, np.int64)
-        i2 = np.asarray(tr, np.int64)
+        rows1 = np.flatnonzero(f1)
+        nn, dd = self._search(d1[rows1], d2, f2, index2, 2)
+        ok = (nn[:, 0] >= 0) & np.isfinite(dd[:, 1]) & (dd[:, 0] < self.ratio * dd[:, 1])
+        i1, i2 = rows1[ok], nn[ok, 0]
         if len(i1) == 0:
             return _EMPTY
         if self.mutual:
             cand = np.unique(i2)
-            back = self.knn(d2[cand], d1, 1)
+            back, _ = self._search(d2[cand], d1, f1, index1, 1)
             best = np.full(len(d2), -1, np.int64)
-            best[cand] = [m[0].trainIdx if len(m) else -1 for m in back]
+            best[cand] = back[:, 0]
             keep = best[i2] == i1
             i1, i2 = i1[keep], i2[keep]
         # a train row must not be claimed twice (possible without the mutual check)
         _, first = np.unique(i2, return_index=True)
         first = np.sort(first)
         return i1[first], i2[first]
+
+    def _search(self, q: NDArray, t: NDArray, free: NDArray[np.bool_], index: DescriptorIndex | None,
+                k: int) -> tuple[IntArray, Array]:
+        """The ``k`` nearest free rows of ``t`` for each row of ``q``, in ``t``'s numbering.
+
+        With a prebuilt ``index`` of all of ``t``, the ``FREE_SEARCH`` nearest rows of all
+        are searched and the first ``k`` free ones kept: the free rows' own nearest
+        neighbours unless more than ``FREE_SEARCH - k`` taken rows are nearer. A free
+        neighbour not among them gets -1 and, as its distance, the farthest one searched
+        (a lower bound of its distance, so a ratio test against it is passed only when
+        the true one would be). Without an index the free rows are searched alone.
+        Missing neighbours (fewer rows): -1 and inf.
+        """
+        if index is not None and index.prebuilt and len(index) == len(t):
+            if free.all():
+                return index.knn(q, k)
+            nn, dd = index.knn(q, max(FREE_SEARCH, k))
+            ok = (nn >= 0) & free[np.maximum(nn, 0)]
+            rank = np.cumsum(ok, axis=1)
+            out_n = np.full((len(q), k), -1, np.int64)
+            out_d = np.full((len(q), k), np.inf)
+            bound = dd[:, -1] if len(t) > nn.shape[1] else np.full(len(q), np.inf)  # all searched: none left
+            for j in range(k):
+                hit = ok & (rank == j + 1)
+                row, col = np.nonzero(hit)
+                out_n[row, j], out_d[row, j] = nn[row, col], dd[row, col]
+                miss = ~hit.any(axis=1)
+                out_d[miss, j] = bound[miss]
+            return out_n, out_d
+        rows = np.flatnonzero(free)
+        sub = t if len(rows) == len(t) else t[rows]
+        nn, dd = self.index(sub).knn(q, k)
+        return np.where(nn >= 0, rows[np.maximum(nn, 0)], -1), dd
 
 
 _METHODS = {"usac": cv2.USAC_DEFAULT, "magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}

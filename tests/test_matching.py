@@ -1,0 +1,150 @@
+"""Descriptor matching (issue 12): a frame's index built once and reused gives the matches
+the plain matcher gives; rows that are not free are never matched; binary descriptors are
+searched exactly; a seeded index is the same whenever it is built."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from eifslam.frontend.matching import DescriptorIndex, DescriptorMatcher
+
+
+def _pair(rng, n=600, shared=400, dim=128, noise=0.05, binary=False):
+    """Two descriptor sets: ``shared`` rows of ``d1`` are noisy copies of rows of ``d2``
+    (in a shuffled order), the others unrelated. Returns d1, d2 and the true partner in
+    ``d2`` of each row of ``d1`` (-1 when none)."""
+    if binary:
+        d2 = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+        d1 = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+    else:
+        d2 = rng.random((n, dim)).astype(np.float32)
+        d1 = rng.random((n, dim)).astype(np.float32)
+    truth = np.full(n, -1, np.int64)
+    src = rng.permutation(n)[:shared]
+    dst = rng.permutation(n)[:shared]
+    if binary:  # flip a few bits
+        flips = rng.random((shared, 32 * 8)) < noise
+        d1[dst] = np.packbits(np.unpackbits(d2[src], axis=1) ^ flips, axis=1)
+    else:
+        d1[dst] = d2[src] + rng.normal(0, noise, (shared, dim)).astype(np.float32)
+    truth[dst] = src
+    return d1, d2, truth
+
+
+def _recall(i1, i2, truth):
+    return np.mean(truth[i1] == i2) if len(i1) else 0.0, np.sum(truth[i1] == i2) / np.sum(truth >= 0)
+
+
+@pytest.mark.parametrize("binary, binary_index", [(False, "bruteforce"), (True, "bruteforce"), (True, "lsh")])
+def test_prebuilt_indices_give_the_plain_matches(binary, binary_index):
+    rng = np.random.default_rng(4)
+    d1, d2, truth = _pair(rng, binary=binary)
+    m = DescriptorMatcher(0.8, True, binary_index=binary_index)
+    a1, a2 = m.match(d1, d2)
+    b1, b2 = m.match(d1, d2, index1=m.index(d1), index2=m.index(d2))
+    for i1, i2 in ((a1, a2), (b1, b2)):
+        precision, recall = _recall(i1, i2, truth)
+        assert 0.97 <= precision <= 1.0 and 0.9 <= recall <= 1.0
+        assert len(np.unique(i1)) == len(i1) and len(np.unique(i2)) == len(i2)
+    same = len(set(zip(a1, a2)) & set(zip(b1, b2))) / len(set(zip(a1, a2)) | set(zip(b1, b2)))
+    assert 0.97 <= same <= 1.0
+
+
+@pytest.mark.parametrize("with_index", [False, True])
+def test_rows_that_are_not_free_are_never_matched(with_index):
+    rng = np.random.default_rng(5)
+    d1, d2, truth = _pair(rng)
+    free1 = rng.random(len(d1)) < 0.6
+    free2 = rng.random(len(d2)) < 0.6
+    m = DescriptorMatcher(0.8, True)
+    idx = (m.index(d1), m.index(d2)) if with_index else (None, None)
+    i1, i2 = m.match(d1, d2, free1, free2, *idx)
+    assert free1[i1].all() and free2[i2].all()
+    # the true pairs of two free rows are found (the others are not available)
+    possible = free1 & (truth >= 0) & free2[np.maximum(truth, 0)]
+    found = np.isin(np.flatnonzero(possible), i1[truth[i1] == i2])
+    assert 0.9 <= found.mean() <= 1.0
+    assert np.mean(truth[i1] == i2) >= 0.97
+
+
+def test_free_rows_from_a_full_index_are_the_subset_matches():
+    """The nearest free rows taken from a search of all rows (prebuilt indices) give the
+    matches of a search of the free rows alone, also where the taken rows are the nearer
+    ones (here every taken row of d2 has a near copy in d1)."""
+    rng = np.random.default_rng(8)
+    d1, d2, truth = _pair(rng, n=800, shared=600, noise=0.08)
+    taken2 = np.zeros(len(d2), bool)
+    taken2[truth[truth >= 0][:300]] = True  # half of the true partners are taken already
+    free1 = rng.random(len(d1)) < 0.8  # rows of d1 whose partner is taken stay free: their nearest is taken
+    m = DescriptorMatcher(0.8, True)
+    a = m.match(d1, d2, free1, ~taken2)
+    b = m.match(d1, d2, free1, ~taken2, m.index(d1), m.index(d2))
+    pa, pb = set(zip(*a)), set(zip(*b))
+    assert len(pa) > 200
+    assert 0.95 <= len(pa & pb) / len(pa | pb) <= 1.0
+
+
+def test_binary_search_is_the_brute_force_matcher():
+    rng = np.random.default_rng(6)
+    d1, d2, _ = _pair(rng, n=300, shared=150, binary=True)
+    idx, dist = DescriptorIndex(d2).knn(d1, 2)
+    ref = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(d1, d2, k=2)
+    np.testing.assert_array_equal(dist, [[m.distance for m in r] for r in ref])
+    # equal distances may come in either order: the nearest distance is what must agree
+    assert np.mean(idx[:, 0] == [r[0].trainIdx for r in ref]) > 0.95
+    # fewer rows than asked for: -1 and inf
+    few, fd = DescriptorIndex(d2[:1]).knn(d1[:3], 2)
+    assert (few[:, 1] == -1).all() and np.isinf(fd[:, 1]).all() and (few[:, 0] == 0).all()
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_a_seeded_index_is_the_same_whenever_it_is_built(binary):
+    rng = np.random.default_rng(7)
+    d1, d2, _ = _pair(rng, n=2000, shared=1000, noise=0.3, binary=binary)
+    out = []
+    for seed in (3, 3, 4):
+        cv2.setRNGSeed(seed)
+        index = DescriptorIndex(d2, trees=4, checks=8, binary="lsh")  # few checks: the trees matter
+        assert index.prebuilt
+        index.build()
+        out.append(index.knn(d1, 2)[0])
+    assert np.array_equal(out[0], out[1])
+    assert not np.array_equal(out[0], out[2])  # (the trees do depend on the generator)
+
+
+def test_bad_binary_index_is_refused():
+    from eifslam.errors import ConfigError
+    from eifslam.frontend.config import FrontEndConfig
+
+    with pytest.raises(ConfigError, match="binary_index"):
+        FrontEndConfig(binary_index="hash")
+    with pytest.raises(ValueError, match="binary index"):
+        DescriptorIndex(np.zeros((3, 32), np.uint8), binary="hash")
+
+
+def test_matching_benchmark_smoke(tmp_path):
+    """benchmarks/matching.py on five rendered frames: a row per run, the features cached."""
+    import importlib.util
+    import json
+    import sys
+    from pathlib import Path
+
+    from test_benchmark_scripts import _tiny_dataset
+
+    bench = Path(__file__).resolve().parents[1] / "benchmarks"
+    if str(bench) not in sys.path:
+        sys.path.insert(0, str(bench))
+    spec = importlib.util.spec_from_file_location("bench_matching", bench / "matching.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    data = _tiny_dataset(tmp_path / "tiny", 5)
+    for detector, extra in (("sift", []), ("orb", ["--set", "binary_index=lsh"])):
+        assert mod.main(["--data", str(data), "--out", str(tmp_path / "out"), "--detector", detector, *extra]) == 0
+    rows = json.loads((tmp_path / "out" / "matching.json").read_text())["rows"]
+    assert [r["detector"] for r in rows] == ["sift", "orb"] and rows[1]["settings"] == ["binary_index=lsh"]
+    for r in rows:
+        assert r["frames"] == 5 and r["cpu_s"] > 0 and r["tracks"] > 10
+        assert 2.0 <= r["mean_track_length"] <= 5.0
+    assert len(list((tmp_path / "out").glob("features-*.pkl"))) == 2
