@@ -4,10 +4,14 @@ For each frame that became a state of the filter, the :class:`LoopCloser`
 
 1. indexes the frame's descriptors in a bag of visual words
    (:class:`~eifslam.frontend.places.PlaceIndex`);
-2. looks for candidate places among the frames *older than every frame that shares a map
-   track with it* (the exclusion is the frame's covisibility, not a fixed count), whose
+2. looks for candidate places among the frames *older than every frame of its place*
+   (:meth:`LoopCloser.place`: the frames that share a map track with it, and through a
+   loop frame among them the old place that loop joined; the exclusion is the frame's
+   covisibility, not a fixed count), whose
    similarity reaches the lowest similarity of the frame to its strongly covisible
    frames (those sharing at least ``loop_min_inliers`` map tracks; ORB-SLAM's rule);
+   a candidate whose own place reaches a frame as recent as the current place's oldest
+   is already joined to the trajectory (no new loop);
 3. keeps a candidate only when its place (the span of frames covisible with it) came back
    in ``loop_consistency`` consecutive queries;
 4. verifies it geometrically (:func:`~eifslam.frontend.loop_verification.verify_place`:
@@ -159,10 +163,10 @@ class LoopCloser:
             span = self.place(j)
             lo, hi = (min(span), max(span)) if span else (j, j)
             lo, hi = min(lo, j), max(hi, j)
-            if any(f in covis for f in span):
-                # the candidate's place already shares map tracks with a frame of the current
-                # place: the map joins the two (tracking, re-observation or an earlier loop
-                # did), so this is no new loop
+            if hi >= oldest:
+                # the candidate's place already reaches a frame as recent as the current
+                # place (shares map tracks with it, or an earlier loop joined it to the
+                # trajectory since): the map joins the two, so this is no new loop
                 continue
             n = 1 + max([c for a, b, c in self._streak if a <= hi and lo <= b], default=0)
             streak.append((lo, hi, n))
