@@ -80,3 +80,41 @@ def test_correct_loop_moves_features_with_the_last_pose_that_saw_them():
     # pose 5 got half the rotation (half the distance travelled)
     ang = np.degrees(np.linalg.norm(quat_log(filt.pose(5)[1])))
     assert abs(ang - 5.0) < 1e-6
+
+
+def test_relinearising_keeps_a_feature_collapsed_onto_its_camera_on_its_weak_prior_only():
+    """At a new estimate a feature can end up behind or on one of its cameras: its views
+    then no longer constrain it, and fusing the one left would make its block singular.
+    relinearise() keeps its weak prior only; a well-seen feature keeps its views."""
+    from eifslam.estimation.factors import constrained_features, features as lin_features
+    from eifslam.estimation.filter import InformationFilter
+    from eifslam.estimation.measurements import FeatureObservations
+    from eifslam.geometry.camera import PinholeCamera
+
+    cam = PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)
+    filt = InformationFilter(cam, recovery="full")
+    one = np.array([1.0, 0.0, 0.0, 0.0])
+    filt.add_pose(0, np.zeros(3), one)
+    filt.add_pose(1, np.array([1.0, 0.0, 0.0]), one)
+    filt.fix_pose(0)
+    filt.set_scale(0, 1, 1.0)
+    good, bad = np.array([0.5, 0.2, 5.0]), np.array([0.3, -0.1, 4.0])
+    filt.add_features([7, 8], np.vstack([good, bad]))
+    uv = lambda X, c: np.array([500 * (X[0] - c) / X[2] + 320, 500 * X[1] / X[2] + 240])  # noqa: E731
+    obs = FeatureObservations.make([0, 1, 0, 1], [7, 7, 8, 8],
+                                   np.vstack([uv(good, 0), uv(good, 1), uv(bad, 0), uv(bad, 1)]))
+    filt.fuse_features(obs, gate=False)
+    filt.recover()
+    # the estimate moves feature 8 onto camera 1's centre and slightly behind it
+    x = filt.x.copy()
+    x[filt.layout.feature_slice(8)] = [1.0, 0.0, -1e-9]
+    filt.set_estimate(x)
+    ok, idx, J, W, innov, _ = lin_features(filt.layout, filt.x, cam, filt.config, obs, False)
+    keep = constrained_features(obs.feature, ok, J[:, :, 7:], W, filt.config.weak_prior_sigma**-2)
+    assert keep.tolist() == [True, True, False, False]
+    filt.relinearise()
+    filt.recover()  # factorises: feature 8's block is its weak prior
+    np.testing.assert_allclose(filt.x[filt.layout.feature_slice(7)], good, atol=1e-6)
+    I = filt.information_matrix().toarray()
+    c8 = filt.layout.feature_columns([8])[0]
+    np.testing.assert_allclose(I[np.ix_(c8, c8)], np.eye(3) * filt.config.weak_prior_sigma**-2)

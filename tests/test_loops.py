@@ -150,3 +150,60 @@ def test_the_loop_closer_state_survives_a_session_round_trip(two_laps):
     assert back.closures == slam.loops.closures and back.index.frame_ids == slam.loops.index.frame_ids
     k = idx.index(9, 18)  # the second visit of scene frame 9
     np.testing.assert_allclose(back.index.scores(k, range(k)), slam.loops.index.scores(k, range(k)))
+
+
+def test_a_fused_loop_joins_its_frame_and_the_frames_after_it_with_the_old_place(two_laps):
+    """The loop's Zm are recorded as observations of the loop frame (Mapper.record_loop),
+    so the loop frame and the second-lap frames after it are covisible with the matched
+    place: the same revisit is not found again."""
+    scene, idx, slam = two_laps
+    loops = slam.loop_closures
+    assert len(loops) >= 1
+    c = loops[0]
+    lap = 18
+    place_k = slam.loops.place(c.frame)
+    assert c.matched_frame in place_k
+    for k in range(c.frame + 1, len(idx)):  # later second-lap frames reach the old place too
+        assert c.matched_frame in slam.loops.place(k)
+    # the frames of the old place that are now covisible are first-lap frames that see the
+    # same part of the table as the loop frame (ground truth used for scoring only)
+    old = [f for f in place_k if f < lap]
+    assert old
+    for f in old:
+        gap = abs(idx[c.frame] - idx[f]) % 54
+        assert min(gap, 54 - gap) <= 12
+    # at most one loop per revisit: no later loop matches a frame of an earlier loop's place
+    for a, b in zip(loops, loops[1:]):
+        assert b.matched_frame not in slam.loops.place(a.frame)
+    # the round trip keeps the loop frames' old features
+    from eifslam.system.loops import LoopCloser
+
+    back = LoopCloser(slam.camera, slam.config, slam.frontend, slam.filter, slam.mapper)
+    back.load_state_dict(slam.loops.state_dict())
+    assert back.place(len(idx) - 1) == slam.loops.place(len(idx) - 1)
+
+
+def test_mapper_records_a_loops_observations_as_covisibility():
+    from types import SimpleNamespace
+
+    from eifslam.system.mapping import Mapper
+
+    uv = np.array([[10.0, 20.0], [30.0, 40.0]])
+    fe = SimpleNamespace(map_observations=lambda k: (np.array([7, 8]), uv),
+                         frame=lambda k: SimpleNamespace(track_ids=np.array([7, 8]), colors=np.zeros((2, 3), np.uint8)))
+    m = Mapper(make_scene_camera(), SlamConfig(), fe, None)
+    m.record_observations(3)  # frame 3 tracked features 7 and 8
+    assert m.covisible([7]) == {3: 1} and m.covisible([5]) == {}
+    m.record_loop(40, np.array([7, 8]), uv + 1.0)  # a loop put them in frame 40
+    assert m.covisible([7, 8]) == {3: 2, 40: 2}
+    m.record_loop(40, np.array([7]), uv[:1])  # recording twice keeps one observation per frame
+    assert m.covisible([7]) == {3: 1, 40: 1}
+    back = Mapper(make_scene_camera(), SlamConfig(), fe, None)
+    back.load_state_dict(m.state_dict())
+    assert back.covisible([7, 8]) == m.covisible([7, 8])
+
+
+def make_scene_camera():
+    from eifslam.sim.scene import make_scene
+
+    return make_scene(n_frames=3, width=64, height=48).camera

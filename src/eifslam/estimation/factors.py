@@ -128,6 +128,50 @@ def features(layout: StateLayout, x: Array, camera: PinholeCamera, config: Filte
     return ok, np.concatenate([pc, fc], 1), np.concatenate([Jp, Jf], 2), W, innov, chi2
 
 
+MIN_FEATURE_CONDITION = 1e-12
+"""Smallest ratio of the eigenvalues of a feature's 3x3 information block (weak prior
+included) that :func:`constrained_features` accepts: below it the block is singular to
+working precision (a Cholesky of it fails or amplifies rounding by more than 1e12)."""
+
+
+def constrained_features(feature: IntArray, ok: NDArray[np.bool_], Jf: Array, W: Array,
+                         weak_info: float) -> NDArray[np.bool_]:
+    """Which ``Zm`` of a batch to fuse so that every feature's information block stays
+    positive definite: a feature keeps its usable measurements only when at least two of
+    them are usable and its block ``sum Jf^T W Jf + weak_info I`` has an eigenvalue ratio
+    above :data:`MIN_FEATURE_CONDITION`; otherwise none of its measurements is fused (its
+    weak prior holds it). Used when every stored measurement is relinearised at a new
+    estimate, where a feature can have slid behind or onto one of its cameras.
+
+    Parameters
+    ----------
+    feature : (N,) int64 feature id of each measurement.
+    ok : (N,) bool, usable at the estimate (:func:`features`' ``ok``).
+    Jf : (N, 2, 3) Jacobians with respect to the feature; W : (N, 2, 2) information.
+    weak_info : float
+        Information of the weak prior on each coordinate (``1 / weak_prior_sigma^2``).
+
+    Returns
+    -------
+    (N,) bool
+        ``ok`` and the feature kept.
+    """
+    feature = np.asarray(feature, np.int64)
+    if len(feature) == 0:
+        return np.asarray(ok, bool).copy()
+    _, inv = np.unique(feature, return_inverse=True)
+    F = int(inv.max()) + 1
+    Jf = np.where(np.asarray(ok, bool)[:, None, None], Jf, 0.0)
+    Jf = np.where(np.isfinite(Jf), Jf, 0.0)
+    D = np.zeros((F, 3, 3))
+    np.add.at(D, inv, np.swapaxes(Jf, 1, 2) @ W @ Jf)
+    D += weak_info * np.eye(3)
+    n = np.bincount(inv, weights=np.asarray(ok, float), minlength=F)
+    ev = np.linalg.eigvalsh(D)
+    good = (n >= 2) & np.all(np.isfinite(ev), 1) & (ev[:, 0] > MIN_FEATURE_CONDITION * ev[:, 2])
+    return np.asarray(ok, bool) & good[inv]
+
+
 def feature_innovation_chi2(innov: Array, W: Array, Jf: Array, Pf: Array, chi2_R: Array) -> Array:
     """Normalised innovation squared of ``Zm`` against ``S = R + Jf Pf Jf^T``.
 

@@ -333,7 +333,10 @@ class InformationFilter(FilterSessionMixin):
         """Rebuild ``I`` and ``i`` from zero at the current ``x``: the gauge and scale
         priors, the weak priors, the quaternion-norm pseudo-measurements and every stored
         measurement (smoothing, paper III-E). Stored ``Zm`` are not gated again: the set
-        the filter accepted is a fixed problem. The current ``x`` becomes every state's
+        the filter accepted is a fixed problem, except that a feature whose usable views
+        no longer constrain it (fewer than two in front of their cameras, or a singular
+        block: :func:`~eifslam.estimation.factors.constrained_features`) keeps its weak
+        prior only. The current ``x`` becomes every state's
         first estimate."""
         self.first_estimates[:] = self.x
         self.info.reset()
@@ -347,8 +350,10 @@ class InformationFilter(FilterSessionMixin):
         if pids:
             self._fuse_quat_norm(np.array(pids))
         obs = self.store.all_features()
-        if len(obs):
-            self.fuse_features(obs, store=False, gate=False)
+        if len(obs):  # a feature whose views no longer constrain it keeps its weak prior only
+            ok, idx, J, W, innov, _ = self.linearise_features(obs, gate=False)
+            ok = factors.constrained_features(obs.feature, ok, J[:, :, 7:], W, self.config.weak_prior_sigma**-2)
+            self._fuse(Linearised(idx[ok], J[ok], W[ok], innov[ok]))
         self.fuse_relative(self.store.relative, store=False)
 
     def recover(self) -> Array:

@@ -166,9 +166,10 @@ class SystemConfig:
     loop_closure : bool
         Place recognition on the filter's frames, geometric verification and fusion of
         the loop's ``Zm`` (:mod:`eifslam.system.loops`); ``--loop-closure`` sets it True,
-        ``--no-loop-closure`` False. Off by default (docs/loop_closure.md): the fusion was
-        reworked (``loop_smooth_passes``) and is not yet measured over the whole loop world
-        nor timed; on the shared sets it finds no loop.
+        ``--no-loop-closure`` False. Off by default (docs/loop_closure.md; turning it on
+        is the one line ``loop_closure: bool = True`` below): over the whole loop world it
+        takes the ATE from 0.729 m to 0.043 m, but a loop the estimate does not predict
+        costs relinearising every stored measurement (20-40 s CPU there).
     loop_words : int
         Visual words of the vocabulary learnt from the run's first frames.
     loop_train_frames : int

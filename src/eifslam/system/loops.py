@@ -4,10 +4,14 @@ For each frame that became a state of the filter, the :class:`LoopCloser`
 
 1. indexes the frame's descriptors in a bag of visual words
    (:class:`~eifslam.frontend.places.PlaceIndex`);
-2. looks for candidate places among the frames *older than every frame that shares a map
-   track with it* (the exclusion is the frame's covisibility, not a fixed count), whose
+2. looks for candidate places among the frames *older than every frame of its place*
+   (:meth:`LoopCloser.place`: the frames that share a map track with it, and through a
+   loop frame among them the old place that loop joined; the exclusion is the frame's
+   covisibility, not a fixed count), whose
    similarity reaches the lowest similarity of the frame to its strongly covisible
    frames (those sharing at least ``loop_min_inliers`` map tracks; ORB-SLAM's rule);
+   a candidate whose own place reaches a frame as recent as the current place's oldest
+   is already joined to the trajectory (no new loop);
 3. keeps a candidate only when its place (the span of frames covisible with it) came back
    in ``loop_consistency`` consecutive queries;
 4. verifies it geometrically (:func:`~eifslam.frontend.loop_verification.verify_place`:
@@ -124,6 +128,7 @@ class LoopCloser:
         self.closures: list[LoopClosure] = []
         self.rejected: list[tuple[int, int, str]] = []  # (frame, candidate, why) verifications that failed
         self._streak: list[tuple[int, int, int]] = []  # (lo, hi, count) places of the last query
+        self._loop_tracks: dict[int, NDArray[np.int64]] = {}  # loop frame -> old features fused there
 
     # -- per frame ------------------------------------------------------------------
     def process(self, k: int) -> LoopClosure | None:
@@ -133,8 +138,7 @@ class LoopCloser:
         desc = self.frontend.descriptors(k)
         if desc is None or len(desc) < 2 or not self.index.add(k, desc):
             return None
-        mids, _ = self.frontend.map_observations(k)
-        covis = self.mapper.covisible(mids)
+        covis = self.place(k)
         covis.pop(k, None)
         if not covis:
             self._streak = []
@@ -156,9 +160,14 @@ class LoopCloser:
         streak, best = [], None
         for i in cand[:5]:
             j = int(ids[i])
-            span = self.mapper.covisible(self.frontend.map_observations(j)[0])
+            span = self.place(j)
             lo, hi = (min(span), max(span)) if span else (j, j)
             lo, hi = min(lo, j), max(hi, j)
+            if hi >= oldest:
+                # the candidate's place already reaches a frame as recent as the current
+                # place (shares map tracks with it, or an earlier loop joined it to the
+                # trajectory since): the map joins the two, so this is no new loop
+                continue
             n = 1 + max([c for a, b, c in self._streak if a <= hi and lo <= b], default=0)
             streak.append((lo, hi, n))
             if best is None and n >= sysc.loop_consistency:
@@ -167,6 +176,27 @@ class LoopCloser:
         if best is None:
             return None
         return self._verify_and_fuse(k, *best)
+
+    def place(self, k: int) -> dict[int, int]:
+        """Frames covisible with frame *k*, with how many of *k*'s map tracks each observed.
+
+        The tracks are those the front end has in frame *k* plus the old features a loop
+        fused there (:meth:`~eifslam.system.mapping.Mapper.record_loop`). A loop joins its
+        frame with the old place, so the frames that observed the features fused at a
+        loop frame of this covisibility are covisible too (one hop through loop frames,
+        count 0: they do not enter the score threshold). Without that hop the frames after
+        a loop, which track the features of the second visit rather than the old ones,
+        would find the same place again and again."""
+        mids, _ = self.frontend.map_observations(k)
+        own = self._loop_tracks.get(int(k))
+        if own is not None:
+            mids = np.union1d(mids, own)
+        covis = self.mapper.covisible(mids)
+        hop = [self._loop_tracks[f] for f in covis if f in self._loop_tracks and f != k]
+        if hop:
+            for f in self.mapper.covisible(np.unique(np.concatenate(hop))):
+                covis.setdefault(f, 0)
+        return covis
 
     def _verify_and_fuse(self, k: int, j: int, score: float, lo: int, hi: int) -> LoopClosure | None:
         from ..frontend.loop_verification import match_to_map, verify_place
@@ -231,6 +261,11 @@ class LoopCloser:
         else:
             fused = filt.fuse_features(obs, gate=False)
             filt.recover_active()
+        # the loop's Zm are observations of frame k (covisibility): the frames after it do not
+        # find the same place again (see place())
+        self.mapper.record_loop(k, fused.feature, fused.uv)
+        self._loop_tracks[int(k)] = np.union1d(self._loop_tracks.get(int(k), np.zeros(0, np.int64)),
+                                               np.asarray(fused.feature, np.int64))
         # track merging: keypoints whose tracks are not map features yet continue the old
         # features' tracks, so the next frames observe the old features as usual (Zm, gated)
         free = ~filt.layout.has_features(fk.track_ids[chk.keypoints])
@@ -251,10 +286,12 @@ class LoopCloser:
     # -- sessions -------------------------------------------------------------------
     def state_dict(self) -> dict:
         """What a session keeps: the place index, the loops found and the last query's
-        candidate places."""
+        candidate places, and the old features fused at each loop frame."""
         C = np.array([[getattr(c, f) for f in _FIELDS] for c in self.closures], float).reshape(-1, len(_FIELDS))
+        L = [np.stack([np.full(len(t), f), t], 1) for f, t in self._loop_tracks.items()]
         return {"index": self.index.state_dict(), "closures": C,
-                "streak": np.array(self._streak, np.int64).reshape(-1, 3)}
+                "streak": np.array(self._streak, np.int64).reshape(-1, 3),
+                "loop_tracks": np.concatenate(L).astype(np.int64) if L else np.zeros((0, 2), np.int64)}
 
     def load_state_dict(self, d) -> None:
         """Restore :meth:`state_dict`, checked (:class:`~eifslam.errors.SessionError`)."""
@@ -266,3 +303,5 @@ class LoopCloser:
                          for row in C]
         S = take(d, "streak", np.int64, (None, 3))
         self._streak = [tuple(int(v) for v in row) for row in S]
+        T = take(d, "loop_tracks", np.int64, (None, 2)) if "loop_tracks" in d else np.zeros((0, 2), np.int64)
+        self._loop_tracks = {int(f): T[T[:, 0] == f, 1].copy() for f in np.unique(T[:, 0])}

@@ -110,6 +110,26 @@ class Mapper:
                 out[k] = out.get(k, 0) + 1
         return out
 
+    def record_loop(self, k: int, track_ids, uv: Array) -> None:
+        """Record the ``Zm`` a verified loop fused into frame *k* (old map features, found
+        by place recognition rather than tracking) as observations of frame *k*, so that
+        :meth:`covisible` joins the frame with the place it closed the loop with.
+
+        Parameters
+        ----------
+        k : int
+            The loop's current frame (a pose of the filter).
+        track_ids : (M,) int
+            The old map features fused.
+        uv : (M, 2)
+            Their pixels in frame *k* (undistorted).
+        """
+        uv = np.asarray(uv, float).reshape(-1, 2)
+        for t, u in zip(np.asarray(track_ids, np.int64).reshape(-1).tolist(), uv):
+            hist = self._track_obs.setdefault(t, [])
+            if not any(j == k for j, _ in hist):
+                hist.append((int(k), u.copy()))
+
     # -- per frame ----------------------------------------------------------------
     def record_observations(self, k: int) -> tuple[NDArray[np.int64], Array]:
         """Store frame *k*'s map observations per track (and first colours); return the
