@@ -305,3 +305,38 @@ def test_the_run_holds_blas_to_its_setting_and_gives_it_back(scene_frames):
     for bad in (0, 1.5, True, "2"):
         with pytest.raises(ConfigError, match="blas_threads"):
             SlamConfig.from_dict({"system": {"blas_threads": bad}})
+
+
+def test_the_run_holds_opencv_to_its_thread_setting_and_gives_it_back(scene_frames):
+    """``system.opencv_threads: auto`` gives OpenCV one thread while SIFT frames are
+    detected in the prefetch worker (FLANN's search in the tracking thread is serial), and
+    leaves OpenCV's setting alone for ORB's parallel Hamming search and without a worker;
+    an integer is applied as it is; OpenCV's setting is restored after the run."""
+    from eifslam.system.runner import opencv_thread_count
+
+    def cfg(**kw) -> SlamConfig:
+        fe = {k: kw.pop(k) for k in ("detector", "binary_index") if k in kw}
+        return SlamConfig.from_dict({"frontend": fe, "system": kw})
+
+    assert opencv_thread_count(cfg(), prefetch=2) == 1
+    assert opencv_thread_count(cfg(), prefetch=0) is None
+    assert opencv_thread_count(cfg(detector="orb"), prefetch=2) is None
+    assert opencv_thread_count(cfg(detector="orb", binary_index="lsh"), prefetch=2) == 1
+    assert opencv_thread_count(cfg(opencv_threads=3, detector="orb"), prefetch=2) == 3
+    assert opencv_thread_count(cfg(opencv_threads=None), prefetch=2) is None
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(2)
+    try:
+        seen: list[int] = []
+        run_sequence(scene_frames, SlamConfig(), max_frames=2, quiet=True,
+                     on_frame=lambda r: seen.append(cv2.getNumThreads()))
+        assert seen == [1, 1] and cv2.getNumThreads() == 2
+        seen.clear()
+        run_sequence(scene_frames, cfg(opencv_threads=None), max_frames=2, quiet=True,
+                     on_frame=lambda r: seen.append(cv2.getNumThreads()))
+        assert seen == [2, 2]
+    finally:
+        cv2.setNumThreads(before)
+    for bad in (0, 1.5, True, "all"):
+        with pytest.raises(ConfigError, match="opencv_threads"):
+            cfg(opencv_threads=bad)

@@ -61,7 +61,7 @@ def default_workers() -> int:
 def run_task_single_threaded(task: BatchTask) -> dict[str, Any]:
     """:func:`~eifslam.evaluation.batch.run_task` with OpenCV and BLAS limited to one
     thread (so that workers sharing a machine do not fight over its cores)."""
-    from ..frontend.frontend import set_opencv_threads
+    from ..frontend.features import set_opencv_threads
 
     set_opencv_threads(1)
     try:

@@ -134,7 +134,7 @@ def write_outputs(slam: Slam, out_dir: str | Path, total_s: float, ground_truth:
 
     def save_npz(path: Path) -> None:
         with atomic_path(path) as tmp:
-            sp.save_npz(tmp, slam.filter.information_matrix().tocsr())
+            sp.save_npz(tmp, slam.filter.information_matrix().tocsr(), compressed=False)  # zlib: 0.2 s of a 51-frame run
 
     t, P, Q = slam.trajectory()  # the estimate first: it is what a user cannot recompute
     save(write_tum, out / "trajectory.tum", t, P, Q)

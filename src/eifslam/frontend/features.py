@@ -8,8 +8,10 @@ most ``max_features`` keypoints. Keypoints leave this module undistorted (``uv``
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import dataclass
+from typing import Iterator
 
 import cv2
 import numpy as np
@@ -22,7 +24,8 @@ from .split import laplacian_sign
 
 Array = NDArray[np.float64]
 
-__all__ = ["Features", "check_image", "make_detector", "detect_features", "undistort_pixels"]
+__all__ = ["Features", "check_image", "make_detector", "detect_features", "undistort_pixels",
+           "set_opencv_threads", "opencv_threads"]
 
 
 @dataclass(frozen=True)
@@ -228,3 +231,23 @@ def detect_features(
         colors=np.ascontiguousarray(colors, dtype=np.uint8),
         detect_ms=(time.perf_counter() - t0) * 1e3,
     )
+
+
+def set_opencv_threads(n: int) -> None:
+    """Set OpenCV's worker threads (``cv2.setNumThreads``); a process-wide setting."""
+    cv2.setNumThreads(int(n))
+
+
+@contextlib.contextmanager
+def opencv_threads(n: int | None) -> Iterator[None]:
+    """Hold OpenCV to ``n`` worker threads inside the block, then restore its setting
+    (``None``: leave it as it is). Process-wide, like :func:`set_opencv_threads`."""
+    if n is None:
+        yield
+        return
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(int(n))
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)

@@ -493,8 +493,3 @@ class FrontEnd(FrontEndState):
         self._get(frame_id)
         self._desc.pop(int(frame_id), None)
         self._index.pop(int(frame_id), None)
-
-
-def set_opencv_threads(n: int) -> None:
-    """Set OpenCV's worker threads (``cv2.setNumThreads``); a process-wide setting."""
-    cv2.setNumThreads(int(n))

@@ -216,6 +216,17 @@ class SystemConfig:
         on the core the prefetch worker needs: on a 2-core machine 7scenes-redkitchen-a
         (SIFT, filter) took 64 s with OpenBLAS's default and 42 s with 1 thread, kitti-seq1
         13.9 s and 11.2 s (docs/realtime.md).
+    opencv_threads : int >= 1, "auto" or None
+        OpenCV's worker threads while :func:`~eifslam.system.runner.run_sequence` runs
+        (None: OpenCV's own setting, one per core). ``"auto"``: 1 when detection runs in
+        the prefetch worker and the tracking thread's descriptor search is FLANN's (float
+        descriptors, or ``frontend.binary_index: lsh``), which is serial: OpenCV's pool then
+        only adds threads to the detection, which already has a core of its own, and they
+        compete with the tracking thread (kitti-seq1, SIFT, filter: 7.6 s against 8.3 s,
+        medians of 4 runs; 7scenes-redkitchen-a 33.0 s against 34.3 s). OpenCV's own
+        setting otherwise: the brute-force Hamming search of ORB/AKAZE is parallel and is
+        the tracking thread's largest stage (7scenes-redkitchen-a, ORB: 35.3 s with
+        OpenCV's setting, 45.2 s with 1 thread). docs/realtime.md.
     """
 
     mode: Mode = Mode.SMOOTH
@@ -258,6 +269,7 @@ class SystemConfig:
     wide_baseline_min_map_features: int = 6
     wide_baseline_relative: bool = False
     blas_threads: int | None = 1
+    opencv_threads: int | str | None = "auto"
 
     def __post_init__(self) -> None:
         try:
@@ -295,6 +307,9 @@ class SystemConfig:
         v = self.blas_threads
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
             raise ConfigError(f"system.blas_threads must be an integer >= 1 or null, got {v!r}")
+        v = self.opencv_threads
+        if v is not None and v != "auto" and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+            raise ConfigError(f"system.opencv_threads must be an integer >= 1, 'auto' or null, got {v!r}")
         if not isinstance(self.wide_baseline_relative, bool):
             raise ConfigError("system.wide_baseline_relative must be true or false, "
                               f"got {self.wide_baseline_relative!r}")

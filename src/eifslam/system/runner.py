@@ -27,6 +27,7 @@ from typing import Any, Callable, Iterator
 from tqdm import tqdm
 
 from ..errors import EifslamError, ImageError
+from ..frontend.features import opencv_threads
 from .config import SlamConfig
 from .finishing import FinishReport
 from .slam import Slam, TrackResult
@@ -303,6 +304,26 @@ def _run(seq, config: SlamConfig, max_frames: int | None, scale: tuple | None, q
         start = resume_index(seq, slam)
     n = len(seq) if max_frames is None else min(len(seq), start + max_frames)
     depth = int(slam.config.frontend.prefetch if prefetch is None else prefetch)
+    with opencv_threads(opencv_thread_count(slam.config, depth)):
+        return _track_all(seq, slam, start, n, depth, scale, quiet, on_frame, save_session)
+
+
+def opencv_thread_count(config: SlamConfig, prefetch: int) -> int | None:
+    """OpenCV's worker threads for a run (``SystemConfig.opencv_threads`` with ``"auto"``
+    resolved: 1 when detection runs in a prefetch worker, ``prefetch > 0``, and the
+    tracking thread searches descriptors with FLANN, which is serial; else None, OpenCV's
+    own setting)."""
+    v = config.system.opencv_threads
+    if v != "auto":
+        return v
+    fe = config.frontend
+    flann = fe.detector.float_descriptors or fe.binary_index == "lsh"
+    return 1 if prefetch > 0 and flann else None
+
+
+def _track_all(seq, slam: Slam, start: int, n: int, depth: int, scale: tuple | None, quiet: bool,
+               on_frame: Callable[[TrackResult], None] | None,
+               save_session: str | Path | None) -> RunResult:
     detect = getattr(slam.frontend, "detect", None)
     t0 = time.perf_counter()
     stopped = None
