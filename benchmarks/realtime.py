@@ -54,9 +54,10 @@ from _common import (  # noqa: E402
 DETECTORS = ("sift", "orb", "akaze", "surf")
 
 #: Stages summarised (median and p95 ms per frame); ``wait``/``load`` is the time the
-#: tracking thread spent getting the frame.
-STAGES: tuple[str, ...] = ("detect", "match", "relative_pose", "covariance", "init", "fuse", "recover",
-                           "total", "wait", "load")
+#: tracking thread spent getting the frame; ``match_ahead`` the matching made in the
+#: prefetch worker (binary descriptors), not part of ``total``.
+STAGES: tuple[str, ...] = ("detect", "match", "match_ahead", "relative_pose", "covariance", "init", "fuse",
+                           "recover", "total", "wait", "load")
 
 
 def percentile_stats(values: Sequence[float]) -> dict[str, float | int | None]:

@@ -340,3 +340,27 @@ def test_the_run_holds_opencv_to_its_thread_setting_and_gives_it_back(scene_fram
     for bad in (0, 1.5, True, "all"):
         with pytest.raises(ConfigError, match="opencv_threads"):
             cfg(opencv_threads=bad)
+
+
+def test_matches_made_ahead_give_the_front_ends_own_results(scene_frames):
+    """ORB (exact brute-force search): features from ``detect_ahead`` carry the matches
+    with the previous detected frame, which ``add_features`` uses in place of its own first
+    search, with the same tracks; matches made against another frame than the front end's
+    previous one (a frame skipped) are ignored; SIFT's features carry none (FLANN)."""
+    cam, ims = scene_frames.camera, scene_frames.images[:6]
+    cfg = FrontEndConfig(detector="orb")
+    a = FrontEnd(cam, cfg)
+    res_a = [a.add_frame(im, k) for k, im in enumerate(ims) if k != 3]
+    b = FrontEnd(cam, cfg)
+    ahead = [b.detect_ahead(im) for im in ims]
+    assert ahead[0].ahead is None and all(f.ahead is not None and len(f.ahead.idx_new) > 20 for f in ahead[1:])
+    res_b = [b.add_features(f, k) for k, f in enumerate(ahead) if k != 3]  # frame 4's were made against 3
+    used = ["match_ahead" in r.timings_ms for r in res_b]
+    assert used == [False, True, True, False, True]
+    for ra, rb in zip(res_a, res_b):
+        assert (ra.ok, ra.n_matches, ra.n_new_tracks) == (rb.ok, rb.n_matches, rb.n_new_tracks)
+    for k in (0, 1, 2, 4, 5):
+        np.testing.assert_array_equal(a.frame(k).track_ids, b.frame(k).track_ids)
+    assert res_a[-1].n_matches > 50
+    sift = FrontEnd(cam, FrontEndConfig())
+    assert all(sift.detect_ahead(im).ahead is None for im in ims[:2])

@@ -8,7 +8,8 @@ Modules: :mod:`.config` (parameters), :mod:`.features` (detection, OpenCV),
 :mod:`.split` (Ωp/Ωm rule), :mod:`.matching` (descriptors, epipolar RANSAC, OpenCV),
 :mod:`.tracks` (track ids), :mod:`.twoview` (Sampson error, refinement, parallax),
 :mod:`.uncertainty` (first-order and unscented covariances), :mod:`.relative_pose`
-(ZR/ZT with covariance), :mod:`.frontend`.
+(ZR/ZT with covariance), :mod:`.reassociation` (tracks found again),
+:mod:`.frontend`.
 The modules ``config, split, tracks, twoview, uncertainty, results`` import no
 OpenCV.
 """

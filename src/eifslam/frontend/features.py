@@ -24,8 +24,31 @@ from .split import laplacian_sign
 
 Array = NDArray[np.float64]
 
-__all__ = ["Features", "check_image", "make_detector", "detect_features", "undistort_pixels",
+__all__ = ["AheadMatch", "Features", "check_image", "make_detector", "detect_features", "undistort_pixels",
            "set_opencv_threads", "opencv_threads"]
+
+
+@dataclass(frozen=True)
+class AheadMatch:
+    """Descriptor matches of a frame with the frame detected before it, computed ahead
+    (in the prefetch worker) because they depend on the two frames' descriptors alone.
+
+    Attributes
+    ----------
+    previous : (N2, D) ndarray
+        The previous frame's descriptors (the very array: the front end uses the matches
+        only when its previous frame holds this object).
+    idx_new, idx_previous : (M,) int64
+        Matched rows of this frame's and of the previous frame's descriptors
+        (:meth:`~eifslam.frontend.matching.DescriptorMatcher.match`, all rows free).
+    ms : float
+        Time the matching took, milliseconds.
+    """
+
+    previous: NDArray
+    idx_new: NDArray[np.int64]
+    idx_previous: NDArray[np.int64]
+    ms: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -51,6 +74,9 @@ class Features:
     detect_ms : float
         Wall time of the detection and description, milliseconds (reported as the
         ``detect`` stage wherever the detection ran, e.g. in the runner's worker thread).
+    ahead : AheadMatch or None
+        Descriptor matches with the previous frame computed where the features were
+        detected (:meth:`~eifslam.frontend.frontend.FrontEnd.detect_ahead`), or None.
     """
 
     uv: Array
@@ -61,6 +87,7 @@ class Features:
     sign: NDArray[np.int8]
     colors: NDArray[np.uint8]
     detect_ms: float = 0.0
+    ahead: AheadMatch | None = None
 
     def __len__(self) -> int:
         return int(len(self.uv))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -19,8 +20,9 @@ from numpy.typing import NDArray
 from ..geometry.camera import PinholeCamera
 from ..errors import EstimatorError
 from .config import FrontEndConfig
-from .features import Features, detect_features, make_detector
+from .features import AheadMatch, Features, detect_features, make_detector
 from .matching import DescriptorIndex, DescriptorMatcher, essential_ransac
+from .reassociation import TrackReassociation
 from .relative_pose import estimate_relative_pose
 from .results import FrameFeatures, FrameResult, Reason, RelativePoseResult
 from .session_state import FrontEndState, StoredFrame
@@ -33,7 +35,7 @@ IntArray = NDArray[np.int64]
 __all__ = ["FrontEnd"]
 
 
-class FrontEnd(FrontEndState):
+class FrontEnd(FrontEndState, TrackReassociation):
     """Feature detection, track management and relative poses for one calibrated camera.
 
     Parameters
@@ -70,6 +72,7 @@ class FrontEnd(FrontEndState):
         self._order: list[int] = []
         self._last_frame = np.zeros(0, np.int64)  # per raw track id: last frame seen in
         self._last_kp = np.zeros(0, np.int64)  # ... and the keypoint index there
+        self._ahead_previous: NDArray | None = None  # detect_ahead's last descriptors (its thread's)
 
     # ------------------------------------------------------------------ pickling
     def __getstate__(self) -> dict:
@@ -85,6 +88,7 @@ class FrontEnd(FrontEndState):
         state.pop("_detector", None)  # sessions saved before detectors were per thread
         self.__dict__.update(state)
         self.__dict__.setdefault("_index", {})
+        self.__dict__.setdefault("_ahead_previous", None)
         self._local = threading.local()
         self._matcher = self._make_matcher()
 
@@ -210,6 +214,22 @@ class FrontEnd(FrontEndState):
         """
         return detect_features(image, self.camera, self.config, self._thread_detector())
 
+    def detect_ahead(self, image: np.ndarray) -> Features:
+        """:meth:`detect`, plus, where the search is exact (binary descriptors, brute force),
+        the matches with the features this method returned last (``Features.ahead``):
+        the first search :meth:`add_features` makes, against the previous frame with every
+        row free, depends on the two frames alone, so a prefetch worker can make it.
+        :meth:`add_features` uses them only when its previous frame holds those
+        descriptors, so the results are those of :meth:`detect`. One thread calls it, in
+        frame order."""
+        feats = self.detect(image)
+        previous, self._ahead_previous = self._ahead_previous, feats.descriptors
+        if previous is None or not (feats.descriptors.dtype == np.uint8 and self.config.binary_index == "bruteforce"):
+            return feats
+        t0 = time.perf_counter()
+        i_new, i_prev = self._matcher.match(feats.descriptors, previous)
+        return replace(feats, ahead=AheadMatch(previous, i_new, i_prev, (time.perf_counter() - t0) * 1e3))
+
     def _thread_detector(self):
         """This thread's OpenCV detector (made on first use: detectors are not thread-safe)."""
         detector = getattr(self._local, "detector", None)
@@ -278,7 +298,7 @@ class FrontEnd(FrontEndState):
             raise EstimatorError(f"frame {fid} was already added to the front end")
         if not isinstance(features, Features):
             raise EstimatorError(f"add_features takes Features, got {type(features).__name__}")
-        feats = features
+        ahead, feats = features.ahead, replace(features, ahead=None)
         if self.config.seed is not None:  # per frame: a resumed session draws what an uninterrupted run would
             cv2.setRNGSeed(int(self.config.seed) + fid)  # (OpenCV's generator is per thread: this one's)
         t1 = time.perf_counter()
@@ -289,8 +309,10 @@ class FrontEnd(FrontEndState):
                 self._index[p] = self._built_index(self._desc[p], p)
         index = self._built_index(feats.descriptors, fid)
         n_matches = 0
+        if ahead is not None and not (previous and ahead.previous is self._desc[previous[0]]):
+            ahead = None  # matched against another frame than the front end's previous one
         for p in previous:
-            n_matches += self._extend_tracks(feats, ids, p, index)
+            n_matches += self._extend_tracks(feats, ids, p, index, ahead if p == previous[0] else None)
         new = ids < 0
         in_map = assign_to_map(feats.sign[new], feats.response[new], self.config.map_fraction)
         ids[new] = self._tracks.allocate(in_map)
@@ -309,8 +331,10 @@ class FrontEnd(FrontEndState):
             ok, reason = False, Reason.TOO_FEW_MATCHES
         else:
             ok, reason = True, Reason.OK
-        return FrameResult(fid, ok, reason, len(feats), int(n_matches), int(new.sum()),
-                           {"detect": float(feats.detect_ms), "match": (t2 - t1) * 1e3})
+        ms = {"detect": float(feats.detect_ms), "match": (t2 - t1) * 1e3}
+        if ahead is not None:
+            ms["match_ahead"] = float(ahead.ms)  # the part of the matching made where detected
+        return FrameResult(fid, ok, reason, len(feats), int(n_matches), int(new.sum()), ms)
 
     def _built_index(self, descriptors: NDArray, fid: int) -> DescriptorIndex:
         """Frame ``fid``'s :class:`DescriptorIndex`, built now from OpenCV's generator set to
@@ -325,10 +349,15 @@ class FrontEnd(FrontEndState):
         self, uv_a: Array, d_a: NDArray, uv_b: Array, d_b: NDArray,
         free_a: NDArray[np.bool_] | None = None, free_b: NDArray[np.bool_] | None = None,
         index_a: DescriptorIndex | None = None, index_b: DescriptorIndex | None = None,
+        ahead: AheadMatch | None = None,
     ) -> tuple[IntArray, IntArray]:
         """Descriptor matches between two keypoint sets that pass the epipolar RANSAC
-        (only the ``free`` rows, prebuilt indices: :meth:`DescriptorMatcher.match`)."""
-        ia, ib = self._matcher.match(d_a, d_b, free_a, free_b, index_a, index_b)
+        (only the ``free`` rows, prebuilt indices: :meth:`DescriptorMatcher.match`; or
+        the descriptor matches made ``ahead``)."""
+        if ahead is None:
+            ia, ib = self._matcher.match(d_a, d_b, free_a, free_b, index_a, index_b)
+        else:
+            ia, ib = ahead.idx_new, ahead.idx_previous
         if len(ia) < self.config.min_matches:
             return ia[:0], ib[:0]
         _, inl = essential_ransac(uv_b[ib], uv_a[ia], self.camera.K,
@@ -338,7 +367,8 @@ class FrontEnd(FrontEndState):
             return ia[:0], ib[:0]
         return ia[inl], ib[inl]
 
-    def _extend_tracks(self, feats: Features, ids: IntArray, p: int, index: DescriptorIndex) -> int:
+    def _extend_tracks(self, feats: Features, ids: IntArray, p: int, index: DescriptorIndex,
+                       ahead: AheadMatch | None = None) -> int:
         """Give unassigned keypoints of the new frame the track ids of frame ``p``'s matches.
 
         Only free keypoints are matched (new ones not yet matched, old ones whose track is
@@ -350,7 +380,7 @@ class FrontEnd(FrontEndState):
         if free_new.sum() < 5 or free_old.sum() < 5:
             return 0
         ia, ib = self._epipolar_matches(feats.uv, feats.descriptors, prev.feats.uv, self._desc[p],
-                                        free_new, free_old, index, self._index[p])
+                                        free_new, free_old, index, self._index[p], ahead)
         ids[ia] = pid[ib]
         return int(len(ia))
 
@@ -362,130 +392,6 @@ class FrontEnd(FrontEndState):
             self._last_kp = np.concatenate([self._last_kp, np.full(grow, -1, np.int64)])
         self._last_frame[ids] = fid
         self._last_kp[ids] = np.arange(len(ids))
-
-    def reobserve(self, frame_id: int, track_ids: IntArray, uv_predicted: Array, radius_px: float,
-                  ratio: float | None = None) -> int:
-        """Guided matching: find known ``Ωm`` tracks again in a frame where tracking lost them.
-
-        Each track's descriptor (from its last observation) is matched against all the
-        frame's keypoints (the front end's matcher: FLANN or Hamming); the nearest is
-        taken when it passes the ratio test against the second nearest, lies within
-        ``radius_px`` of where the track is predicted, and started a new ``Ωm`` track in
-        this frame, which is then merged into the old track (so the map feature gets this
-        measurement and the keypoint's measurements are never used twice).
-
-        Parameters
-        ----------
-        frame_id : int
-            A stored frame with descriptors.
-        track_ids : (M,) int64
-            ``Ωm`` track ids (current identities) not seen in the frame.
-        uv_predicted : (M, 2)
-            Undistorted pixels where each track is expected in the frame.
-        radius_px : float
-            Search radius, pixels.
-        ratio : float, optional
-            Ratio-test threshold (default: the matcher's).
-
-        Returns
-        -------
-        int
-            How many tracks were found again.
-        """
-        fid = int(frame_id)
-        fr = self._get(fid)
-        track_ids = np.asarray(track_ids, np.int64).reshape(-1)
-        uv_predicted = np.asarray(uv_predicted, float).reshape(-1, 2)
-        if len(track_ids) == 0 or fid not in self._desc or len(fr.feats) < 2:
-            return 0
-        ratio = self._matcher.ratio if ratio is None else float(ratio)
-        lf, lk = self._last_frame[track_ids], self._last_kp[track_ids]
-        have = (lf >= 0) & (lf != fid) & np.isin(lf, list(self._desc))
-        track_ids, uv_predicted, lf, lk = track_ids[have], uv_predicted[have], lf[have], lk[have]
-        if len(track_ids) == 0:
-            return 0
-        D = np.stack([self._desc[int(f)][int(k)] for f, k in zip(lf, lk)])
-        Dk = self._desc[fid]
-        # Lowe's ratio test over the whole frame (the radius only checks where the nearest
-        # descriptor is): nearest and second-nearest keypoint of each track's descriptor
-        index = self._index[fid] if fid in self._index else self._matcher.index(Dk)  # kept from matching
-        nn, dd = index.knn(D.astype(Dk.dtype), 2)
-        two = nn[:, 1] >= 0
-        best = np.where(two, nn[:, 0], 0)
-        d1 = np.where(two, dd[:, 0], np.inf)
-        d2 = np.where(two, dd[:, 1], 0.0)
-        ok = (d1 < ratio * d2) & (np.linalg.norm(fr.feats.uv[best] - uv_predicted, axis=1) <= radius_px)
-        kid = self._tracks.resolve(fr.raw_ids)
-        fresh = self._tracks.in_map(kid) & (self._tracks.length(kid) == 1)
-        ok &= fresh[best]
-        # a keypoint goes to one track only: the closest descriptor wins
-        cand = np.flatnonzero(ok)
-        cand = cand[np.argsort(d1[cand])]
-        _, first = np.unique(best[cand], return_index=True)
-        found = 0
-        for i in cand[np.sort(first)]:
-            if self._tracks.merge(int(track_ids[i]), int(kid[best[i]])):
-                self._last_frame[track_ids[i]], self._last_kp[track_ids[i]] = fid, best[i]
-                found += 1
-        return found
-
-    def relocalise(self, frame_id: int, candidate_frame_ids) -> list[tuple[int, int]]:
-        """Match a frame against older stored frames and merge the matched tracks.
-
-        Map features (and ``Ωp`` tracks) seen in a candidate regain their identity in
-        ``frame_id``: each matched pair of tracks is merged into the older id, unless the
-        two tracks are of different sets or share a frame.
-
-        Parameters
-        ----------
-        frame_id : int
-            A stored frame (with descriptors).
-        candidate_frame_ids : iterable of int
-            Stored frames to try (those without descriptors are skipped).
-
-        Returns
-        -------
-        list of (candidate_id, n_matches)
-            Epipolar-consistent matches found with each candidate (0 when none).
-        """
-        fr = self._get(frame_id)
-        out: list[tuple[int, int]] = []
-        pairs = []
-        for c in candidate_frame_ids:
-            c = int(c)
-            if c == int(frame_id) or c not in self._desc or int(frame_id) not in self._desc:
-                out.append((c, 0))
-                continue
-            cf = self._get(c)
-            ia, ib = self._epipolar_matches(fr.feats.uv, self._desc[int(frame_id)],
-                                            cf.feats.uv, self._desc[c])
-            out.append((c, int(len(ia))))
-            if len(ia):
-                pairs.append(np.stack([fr.raw_ids[ia], cf.raw_ids[ib]], 1))
-        if pairs:
-            self._merge_pairs(np.concatenate(pairs))
-        return out
-
-    def join_tracks(self, frame_id: int, keypoints: IntArray, track_ids: IntArray) -> None:
-        """Merge the tracks of keypoints of a frame into known tracks (a verified loop): as
-        :meth:`relocalise` merges matched pairs (same set, no shared frame)."""
-        kp = np.asarray(keypoints, np.int64).reshape(-1)
-        if kp.size:
-            self._merge_pairs(np.stack([self._get(frame_id).raw_ids[kp], np.asarray(track_ids, np.int64)], 1))
-
-    def _merge_pairs(self, pairs: IntArray) -> None:
-        roots = np.unique(self._tracks.resolve(pairs.reshape(-1)))
-        frames: dict[int, set[int]] = {int(r): set() for r in roots}
-        for fid, fr in self._frames.items():
-            ids = self._tracks.resolve(fr.raw_ids)
-            for h in ids[np.isin(ids, roots)]:
-                frames[int(h)].add(fid)
-        for a, b in pairs:
-            ra, rb = (int(v) for v in self._tracks.resolve(np.array([a, b])))
-            if ra == rb or frames[ra] & frames[rb]:
-                continue
-            if self._tracks.merge(ra, rb):
-                frames[min(ra, rb)] = frames[ra] | frames[rb]
 
     def forget(self, frame_id: int) -> None:
         """Drop the descriptors of a frame (it can no longer be matched; its keypoints and

@@ -324,7 +324,7 @@ def opencv_thread_count(config: SlamConfig, prefetch: int) -> int | None:
 def _track_all(seq, slam: Slam, start: int, n: int, depth: int, scale: tuple | None, quiet: bool,
                on_frame: Callable[[TrackResult], None] | None,
                save_session: str | Path | None) -> RunResult:
-    detect = getattr(slam.frontend, "detect", None)
+    detect = getattr(slam.frontend, "detect_ahead", None)
     t0 = time.perf_counter()
     stopped = None
     bar = tqdm(total=max(n - start, 0), desc="eifslam", unit="frame", disable=quiet, file=sys.stderr)
