@@ -64,3 +64,40 @@ def test_the_gate_is_never_loosened():
     slam = _run(2.0, 1.0)
     rep = smooth(slam.filter, max_passes=3, feature_chi2=9.21, estimate_noise=True)
     assert rep.noise_scale == 1.0
+
+
+def test_passes_stop_when_damped_steps_only_crawl(monkeypatch):
+    """A pass whose undamped step raises the cost and whose damped step lowers it by less
+    than 1% ends the passes (another would crawl the same way); a damped step that lowers
+    it by more goes on; an undamped one below 1% is convergence."""
+    from types import SimpleNamespace
+
+    from eifslam.estimation import smoothing as sm
+
+    def run(costs_by_lam: dict[float, list[float]], max_passes: int = 5) -> sm.SmoothingReport:
+        calls = {"cost": 0}
+        seq = {lam: list(v) for lam, v in costs_by_lam.items()}
+        filt = SimpleNamespace(x=np.zeros(3), dim=3, priors=SimpleNamespace(scale=None), current_lam=0.0)
+        costs = iter([100.0])
+
+        def cost(f, *a, **k):
+            calls["cost"] += 1
+            if calls["cost"] == 1:
+                return next(costs)
+            return seq[f.current_lam].pop(0)
+
+        def solve(f, x0, lam):
+            f.current_lam = lam
+            return x0 + 1.0
+
+        monkeypatch.setattr(sm, "measurement_cost", cost)
+        monkeypatch.setattr(sm, "relinearise", lambda f: None)
+        monkeypatch.setattr(sm, "_damped_solve", solve)
+        rep = sm.SmoothingReport()
+        sm._passes(filt, max_passes, 1e-12, rep)
+        return rep
+
+    crawl = run({0.0: [101.0] * 5, 1e-3: [100.5] * 5, 1e-2: [99.6, 99.3, 99.0, 98.7, 98.4]})
+    assert crawl.passes == 1 and not crawl.converged and crawl.reason.startswith("stopped: the last pass, damped")
+    useful = run({0.0: [101.0, 84.95], 1e-3: [100.5, 85.0], 1e-2: [90.0]})
+    assert useful.passes == 3 and useful.converged and "undamped" in useful.reason

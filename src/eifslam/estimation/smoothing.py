@@ -223,8 +223,9 @@ def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
         At most this many passes per round (default 5).
     tol : float
         Stop when the largest change of any state entry, relative to the scale of the
-        map (``max(1, scale prior length)``), is below ``tol``, or when an undamped pass
-        lowers the cost by less than 1%.
+        map (``max(1, scale prior length)``), is below ``tol``, or when a pass lowers the
+        cost by less than 1% (undamped: converged; damped: the undamped step left the
+        region where the model is linear and the damped ones only crawl).
     feature_chi2, relative_chi2 : float or None
         Gates of :func:`reject_outliers` (``None``: keep every measurement of that kind).
     max_rounds : int
@@ -330,11 +331,16 @@ def _passes(filt: InformationFilter, max_passes: int, tol: float, rep: Smoothing
         rep.costs.append(cost)
         norm = float(np.max(np.abs(filt.x - before))) if filt.dim else 0.0
         rep.step_norms.append(norm)
-        if norm <= tol * ref or (lam == 0.0 and rep.costs[-2] - cost <= cost_tol * rep.costs[-2]):
+        small = rep.costs[-2] - cost <= cost_tol * rep.costs[-2]
+        if norm <= tol * ref or (lam == 0.0 and small):
             rep.converged = True
             rep.reason = (f"converged: the last pass changed no state entry by more than {tol:g} of the scale"
                           if norm <= tol * ref else
                           f"converged: the last undamped pass lowered the cost by less than {cost_tol:.0%}")
+            break
+        if small:  # damped: crawling where the undamped step leaves the linear region
+            rep.reason = (f"stopped: the last pass, damped (lam {lam * 10:g}), lowered the cost by less "
+                          f"than {cost_tol:.0%}")
             break
     else:
         rep.reason = f"stopped after {max_passes} passes"
