@@ -30,6 +30,8 @@ COLMAP_ATE: dict[str, float] = {
     "strecha-fountain-p11": 0.0034,
     "middlebury-templering": 0.0012,
     "7scenes-redkitchen-a": 0.038,
+    "strecha-herzjesu-p25": 0.0059,  # COLMAP at 768 px (../shared/EVALUATION.md)
+    "strecha-castle-p30": 0.169,
 }
 
 #: Frame stages timed by :class:`eifslam.system.slam.Slam` (``report.json`` ``stage_ms_median``).

@@ -33,20 +33,12 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import (discover_datasets, fmt, log, machine_info, markdown_table, provenance_markdown,  # noqa: E402
+from _common import (COLMAP_ATE, discover_datasets, fmt, log, machine_info, markdown_table, provenance_markdown,  # noqa: E402
                      command_line, split_list, write_json)
 
 #: What an ATE is compared with: COLMAP on the same images, or the issue's bar where
 #: COLMAP's model breaks (kitti-07: 7.25 m; the bar is 0.25 m).
-REFERENCE_ATE: dict[str, float] = {
-    "kitti-seq1": 0.024,
-    "strecha-fountain-p11": 0.0034,
-    "middlebury-templering": 0.0012,
-    "7scenes-redkitchen-a": 0.038,
-    "kitti-07": 0.25,
-    "strecha-herzjesu-p25": 0.0059,
-    "strecha-castle-p30": 0.169,
-}
+REFERENCE_ATE: dict[str, float] = {**COLMAP_ATE, "kitti-07": 0.25}
 
 
 def parse_value(text: str) -> Any:
