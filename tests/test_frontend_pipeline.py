@@ -236,3 +236,52 @@ def test_reobserve_finds_lost_map_tracks_where_predicted_only(texture, detector)
     where = {t: u for t, u in zip(ids0.tolist(), uv0)}
     assert np.median([np.linalg.norm(where[t] - u) for t, u in zip(ids_back.tolist(), uv_back)]) < 0.5
     assert run(40.0)[0] <= 0.02 * n
+
+
+def test_spread_keypoints_takes_every_cell_before_a_second_from_any():
+    """Known answer: 200 strong keypoints packed in one corner and 200 weak ones on a
+    uniform grid; keeping 100 takes the strongest of each occupied cell first, so the weak
+    ones elsewhere win over the corner's second-strongest, and the choice is ordered by
+    rank in cell, then response."""
+    from eifslam.frontend.features import spread_keypoints
+
+    rng = np.random.default_rng(2)
+    W, H = 400, 300
+    strong = rng.uniform(0, 20, (200, 2))
+    gx, gy = np.meshgrid(np.linspace(5, W - 5, 20), np.linspace(5, H - 5, 10))
+    weak = np.stack([gx.ravel(), gy.ravel()], 1)
+    uv = np.concatenate([strong, weak])
+    resp = np.concatenate([100 + rng.random(200), rng.random(200)])
+    keep = spread_keypoints(uv, resp, 100, W, H)
+    side = np.sqrt(W * H / 50.0)
+    cell = np.floor(uv[:, 1] / side) * 1000 + np.floor(uv[:, 0] / side)
+    assert len(keep) == 100 and len(np.unique(keep)) == 100
+    assert len(np.unique(cell[keep])) == 100 or len(np.unique(cell[keep])) == len(np.unique(cell))
+    corner = cell[np.argmax(resp)]
+    in_corner = keep[cell[keep] == corner]
+    assert len(in_corner) <= 2  # at most the corner cell's best (its second only once all cells had one)
+    assert resp[in_corner].max() == resp[cell == corner].max()
+    assert np.array_equal(spread_keypoints(uv[:50], resp[:50], 100, W, H), np.arange(50))  # fewer: all
+
+
+def test_orb_candidates_keep_max_features_spread_wider_than_opencvs_choice(texture):
+    """``orb_candidates`` > 1 keeps exactly ``max_features`` keypoints, over more cells
+    than OpenCV's strongest ``max_features`` (the default, 1) and more of them on the
+    image's weaker right half."""
+    from eifslam.frontend.features import detect_features, make_detector
+
+    cam = CAM
+    img = _rotated_view(texture, 0.0)
+    base = FrontEndConfig(detector="orb", max_features=300)
+    spread = FrontEndConfig(detector="orb", max_features=300, orb_candidates=3.0)
+    fa = detect_features(img, cam, base, make_detector(base))
+    fb = detect_features(img, cam, spread, make_detector(spread))
+    assert len(fb) == 300 and len(fa) <= 300
+    side = np.sqrt(cam.width * cam.height / 150.0)
+
+    def cells(f):
+        return len(np.unique(np.floor(f.uv_raw / side), axis=0))
+
+    assert cells(fb) > cells(fa)
+    right = lambda f: int(np.sum(f.uv_raw[:, 0] >= cam.width // 2))  # noqa: E731
+    assert right(fb) > right(fa)

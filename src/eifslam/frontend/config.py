@@ -65,6 +65,14 @@ class FrontEndConfig:
     sift_contrast_threshold : float > 0
         SIFT's contrast threshold (OpenCV's ``contrastThreshold``, 0.04 by default; OpenCV
         divides it by ``sift_octave_layers``): weaker extrema are dropped.
+    orb_candidates : float >= 1
+        ORB detects this many times ``max_features`` keypoints and keeps ``max_features`` of
+        them spread over the image (:func:`~eifslam.frontend.features.spread_keypoints`:
+        strongest first in each cell of a grid of about two keypoints per cell, cell by
+        cell), instead of OpenCV's strongest, which cluster on the most textured parts.
+        1 (default): OpenCV's selection. 2 lowered the median ORB ATE over three feature
+        counts on five of the seven shared sets but failed kitti-07 twice in three runs
+        (docs/frontend.md, "Spreading ORB's keypoints").
     detect_scale : float in (0, 1]
         Images are resized by this factor (``INTER_AREA``) before detection and the
         keypoints scaled back to full-resolution pixels (1: detect at full resolution).
@@ -146,6 +154,7 @@ class FrontEndConfig:
     max_features: int = 2000
     sift_octave_layers: int = 3
     sift_contrast_threshold: float = 0.04
+    orb_candidates: float = 1.0
     detect_scale: float = 1.0
     color_order: str = "bgr"
     # split of tracks between relative poses (Ωp) and the map (Ωm)
@@ -222,6 +231,7 @@ class FrontEndConfig:
             "min_rotation_residual_deg": lambda v: 0.0 <= v < 90.0,
             "sigma_px": lambda v: 0.0 < v < 1e3,
             "sift_contrast_threshold": lambda v: 0.0 < v < 1.0,
+            "orb_candidates": lambda v: 1.0 <= v <= 20.0,
             "detect_scale": lambda v: 0.0 < v <= 1.0,
         }
         for key, ok in checks.items():

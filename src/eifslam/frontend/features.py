@@ -24,7 +24,7 @@ from .split import laplacian_sign
 
 Array = NDArray[np.float64]
 
-__all__ = ["AheadMatch", "Features", "check_image", "make_detector", "detect_features", "undistort_pixels",
+__all__ = ["AheadMatch", "Features", "spread_keypoints", "check_image", "make_detector", "detect_features", "undistort_pixels",
            "set_opencv_threads", "opencv_threads"]
 
 
@@ -143,7 +143,7 @@ def make_detector(config: FrontEndConfig) -> "cv2.Feature2D":
         return cv2.SIFT_create(nfeatures=n, nOctaveLayers=config.sift_octave_layers,
                                contrastThreshold=float(config.sift_contrast_threshold))
     if name == "orb":
-        return cv2.ORB_create(nfeatures=n, fastThreshold=10)
+        return cv2.ORB_create(nfeatures=max(n, int(round(n * float(config.orb_candidates)))), fastThreshold=10)
     if name == "akaze":
         factory = getattr(cv2, "AKAZE_create", None)
         if factory is None:
@@ -163,6 +163,38 @@ def make_detector(config: FrontEndConfig) -> "cv2.Feature2D":
         return factory(hessianThreshold=300)
     except cv2.error as exc:  # built without OPENCV_ENABLE_NONFREE
         raise ConfigError(f"detector 'surf' is not usable in this OpenCV build: {exc}") from None
+
+
+def spread_keypoints(uv: Array, response: Array, n: int, width: int, height: int) -> NDArray[np.int64]:
+    """Indices of ``n`` keypoints spread over the image: the strongest of every cell of a
+    grid sized for about two keypoints per cell at ``n`` (cell side ``sqrt(W H / (n / 2))``),
+    then the second strongest of every cell, and so on (ties by response, strongest first).
+
+    Parameters
+    ----------
+    uv : (N, 2) pixels; response : (N,) detector responses (larger is stronger).
+    n : int
+        How many to keep (all when ``N <= n``).
+    width, height : int
+        Image size, pixels.
+
+    Returns
+    -------
+    (min(N, n),) int64 indices into the keypoints, in the order chosen.
+    """
+    uv = np.asarray(uv, float).reshape(-1, 2)
+    response = np.asarray(response, float).reshape(-1)
+    if len(uv) <= n:
+        return np.arange(len(uv), dtype=np.int64)
+    side = float(np.sqrt(width * height / max(n / 2.0, 1.0)))
+    cols = int(np.ceil(width / side)) + 2
+    cell = (np.floor(uv[:, 1] / side).astype(np.int64) + 1) * cols + np.floor(uv[:, 0] / side).astype(np.int64) + 1
+    order = np.lexsort((-response, cell))  # by cell, strongest first within each
+    c = cell[order]
+    first = np.r_[0, np.flatnonzero(c[1:] != c[:-1]) + 1]
+    rank = np.empty(len(uv), np.int64)
+    rank[order] = np.arange(len(order)) - np.repeat(first, np.diff(np.r_[first, len(order)]))
+    return np.lexsort((-response, rank))[:n].astype(np.int64)
 
 
 def undistort_pixels(uv_raw: Array, camera: PinholeCamera) -> Array:
@@ -238,7 +270,10 @@ def detect_features(
         uv_raw = (uv_raw + 0.5) / np.array([sx, sy]) - 0.5
         size = size / np.sqrt(sx * sy)
     response = np.array([k.response for k in kps], np.float64)
-    if len(kps) > config.max_features:  # AKAZE/SURF have no cap of their own
+    if len(kps) > config.max_features and config.detector == "orb":  # candidates: spread them
+        keep = spread_keypoints(uv_raw, response, config.max_features, camera.width, camera.height)
+        uv_raw, size, response, desc = uv_raw[keep], size[keep], response[keep], desc[keep]
+    elif len(kps) > config.max_features:  # AKAZE/SURF have no cap of their own
         keep = np.argsort(-response, kind="stable")[: config.max_features]
         uv_raw, size, response, desc = uv_raw[keep], size[keep], response[keep], desc[keep]
     scale = 0.5 * size  # OpenCV's size is a diameter of about 2 sigma (SIFT)
