@@ -239,6 +239,13 @@ class FrontEndConfig:
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not ok(float(v)):
                 raise bad(key, "is out of range")
 
+    @property
+    def flann_search(self) -> bool:
+        """Whether frames are matched with a FLANN index (approximate, built with OpenCV's
+        seeded generator, serial): float descriptors, or binary ones with ``binary_index:
+        lsh``; otherwise binary descriptors are searched exactly by brute force."""
+        return self.detector.float_descriptors or self.binary_index == "lsh"
+
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> "FrontEndConfig":
         """Build a config from a mapping, rejecting unknown keys.

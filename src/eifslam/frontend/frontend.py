@@ -224,7 +224,7 @@ class FrontEnd(FrontEndState, TrackReassociation):
         frame order."""
         feats = self.detect(image)
         previous, self._ahead_previous = self._ahead_previous, feats.descriptors
-        if previous is None or not (feats.descriptors.dtype == np.uint8 and self.config.binary_index == "bruteforce"):
+        if previous is None or self.config.flann_search:
             return feats
         t0 = time.perf_counter()
         i_new, i_prev = self._matcher.match(feats.descriptors, previous)

@@ -316,9 +316,7 @@ def opencv_thread_count(config: SlamConfig, prefetch: int) -> int | None:
     v = config.system.opencv_threads
     if v != "auto":
         return v
-    fe = config.frontend
-    flann = fe.detector.float_descriptors or fe.binary_index == "lsh"
-    return 1 if prefetch > 0 and flann else None
+    return 1 if prefetch > 0 and config.frontend.flann_search else None
 
 
 def _track_all(seq, slam: Slam, start: int, n: int, depth: int, scale: tuple | None, quiet: bool,
