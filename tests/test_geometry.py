@@ -31,6 +31,20 @@ def test_quaternion_conventions_match_scipy():
     np.testing.assert_allclose(g.quat_wxyz_to_xyzw(q) * np.sign(q[:, :1]), R.as_quat() * np.sign(R.as_quat()[:, 3:]), atol=1e-12)
 
 
+def test_skew_and_rotation_matrices_of_any_leading_shape():
+    rng = np.random.default_rng(4)
+    for shape in [(), (7,), (3, 5)]:
+        v, w = rng.normal(size=shape + (3,)), rng.normal(size=shape + (3,))
+        S = g.skew(v)
+        assert S.shape == shape + (3, 3)
+        np.testing.assert_allclose(np.einsum("...ij,...j->...i", S, w), np.cross(v, w), atol=1e-12)
+        q = rng.normal(size=shape + (4,))  # any norm: normalised inside
+        R = g.quat_to_rotmat(q)
+        assert R.shape == shape + (3, 3)
+        ref = Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_matrix().reshape(shape + (3, 3))
+        np.testing.assert_allclose(R, ref, atol=1e-12)
+
+
 def test_tangent_basis_is_orthonormal():
     t = np.random.default_rng(3).normal(size=(100, 3))
     t /= np.linalg.norm(t, axis=1, keepdims=True)

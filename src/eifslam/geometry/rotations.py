@@ -30,6 +30,7 @@ __all__ = [
     "quat_conjugate",
     "quat_multiply",
     "quat_to_rotmat",
+    "unit_quat_to_rotmat",
     "rotmat_to_quat",
     "quat_exp",
     "quat_log",
@@ -54,15 +55,12 @@ def skew(v: Array) -> Array:
     (..., 3, 3) array ``S`` with ``S @ w == cross(v, w)``.
     """
     v = np.asarray(v, dtype=float)
-    z = np.zeros(v.shape[:-1])
-    return np.stack(
-        [
-            np.stack([z, -v[..., 2], v[..., 1]], -1),
-            np.stack([v[..., 2], z, -v[..., 0]], -1),
-            np.stack([-v[..., 1], v[..., 0], z], -1),
-        ],
-        -2,
-    )
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    S[..., 0, 1], S[..., 0, 2] = -z, y
+    S[..., 1, 0], S[..., 1, 2] = z, -x
+    S[..., 2, 0], S[..., 2, 1] = -y, x
+    return S
 
 
 def quat_normalize(q: Array) -> Array:
@@ -117,6 +115,8 @@ def quat_multiply(a: Array, b: Array) -> Array:
 def quat_to_rotmat(q: Array) -> Array:
     """Rotation matrix of unit quaternion(s).
 
+    ``R = (w² - |v|²) I + 2 v vᵀ + 2 w [v]×`` for ``q = [w, v]``, written element by element.
+
     Parameters
     ----------
     q : (..., 4) array, ``[w, x, y, z]``; normalised internally.
@@ -127,13 +127,25 @@ def quat_to_rotmat(q: Array) -> Array:
     """
     q = np.asarray(q, dtype=float)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, v = q[..., 0], q[..., 1:]
-    eye = np.broadcast_to(np.eye(3), q.shape[:-1] + (3, 3))
-    return (
-        (w * w - np.sum(v * v, -1))[..., None, None] * eye
-        + 2.0 * v[..., :, None] * v[..., None, :]
-        + 2.0 * w[..., None, None] * skew(v)
-    )
+    return unit_quat_to_rotmat(q[..., 0], q[..., 1:])
+
+
+def unit_quat_to_rotmat(w: Array, v: Array) -> Array:
+    """Rotation matrices ``(..., 3, 3)`` of unit quaternions given as scalar ``w (...)`` and
+    vector part ``v (..., 3)`` (not normalised here)."""
+    R = (2.0 * v)[..., :, None] * v[..., None, :]  # 2 v v^T
+    a = w * w - np.sum(v * v, -1)
+    w2 = 2.0 * w
+    wx, wy, wz = w2 * v[..., 0], w2 * v[..., 1], w2 * v[..., 2]
+    for i in range(3):
+        R[..., i, i] = a + R[..., i, i]
+    R[..., 0, 1] -= wz
+    R[..., 0, 2] += wy
+    R[..., 1, 0] += wz
+    R[..., 1, 2] -= wx
+    R[..., 2, 0] -= wy
+    R[..., 2, 1] += wx
+    return R
 
 
 def rotmat_to_quat(R: Array) -> Array:
