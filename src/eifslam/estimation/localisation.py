@@ -23,7 +23,7 @@ Array = NDArray[np.float64]
 
 def localise_pose(
     camera: PinholeCamera, p0: Array, q0: Array, X: Array, uv: Array, iterations: int = 8,
-    huber_px: float = 2.0, min_inliers: int = 12, inlier_px: float = 4.0,
+    huber_px: float = 2.0, min_inliers: int = 12, inlier_px: float = 4.0, tol_px2: float = 1e-4,
 ) -> tuple[Array, Array, NDArray[np.bool_]] | None:
     """Refine a pose guess from 2D-3D correspondences.
 
@@ -32,9 +32,12 @@ def localise_pose(
     camera : PinholeCamera
     p0, q0 : (3,), (4,) initial camera centre and ``q_wc``.
     X : (N, 3) world points; uv : (N, 2) their undistorted pixels.
-    iterations : Gauss-Newton steps with Huber weights.
+    iterations : at most this many Gauss-Newton steps with Huber weights.
     huber_px, inlier_px : robust-weight threshold and final inlier threshold, pixels.
     min_inliers : fewer inliers than this is a failure.
+    tol_px2 : stop once a step's predicted decrease of the weighted squared reprojection
+        error, ``b . d`` (px²), is below this: at 1 px noise the step is then a hundredth
+        of a standard deviation of the pose (its Mahalanobis length is ``sqrt(b . d) / sigma``).
 
     Returns
     -------
@@ -62,7 +65,7 @@ def localise_pose(
         if not np.all(np.isfinite(d)):
             return None
         p, q = p + d[:3], quat_normalize(q + d[3:])
-        if np.linalg.norm(d) < 1e-10:
+        if float(b @ d) < tol_px2:
             break
     N = len(X)
     h, _, _, z = models.feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X, c.fx, c.fy, c.cx, c.cy)
