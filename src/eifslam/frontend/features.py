@@ -42,13 +42,17 @@ class AheadMatch:
         Matched rows of this frame's and of the previous frame's descriptors
         (:meth:`~eifslam.frontend.matching.DescriptorMatcher.match`, all rows free).
     ms : float
-        Time the matching took, milliseconds.
+        Time the matching (and its RANSAC) took, milliseconds.
+    inliers : (M,) bool or None
+        Which matches pass the epipolar RANSAC of the front end's config; None when it
+        was not run (fewer matches than ``min_matches``).
     """
 
     previous: NDArray
     idx_new: NDArray[np.int64]
     idx_previous: NDArray[np.int64]
     ms: float = 0.0
+    inliers: NDArray[np.bool_] | None = None
 
 
 @dataclass(frozen=True)

@@ -72,7 +72,7 @@ class FrontEnd(FrontEndState, TrackReassociation):
         self._order: list[int] = []
         self._last_frame = np.zeros(0, np.int64)  # per raw track id: last frame seen in
         self._last_kp = np.zeros(0, np.int64)  # ... and the keypoint index there
-        self._ahead_previous: NDArray | None = None  # detect_ahead's last descriptors (its thread's)
+        self._ahead_last: Features | None = None  # detect_ahead's last features (its thread's)
 
     # ------------------------------------------------------------------ pickling
     def __getstate__(self) -> dict:
@@ -88,7 +88,8 @@ class FrontEnd(FrontEndState, TrackReassociation):
         state.pop("_detector", None)  # sessions saved before detectors were per thread
         self.__dict__.update(state)
         self.__dict__.setdefault("_index", {})
-        self.__dict__.setdefault("_ahead_previous", None)
+        self.__dict__.pop("_ahead_previous", None)  # before the epipolar check was made ahead too
+        self.__dict__.setdefault("_ahead_last", None)
         self._local = threading.local()
         self._matcher = self._make_matcher()
 
@@ -216,19 +217,23 @@ class FrontEnd(FrontEndState, TrackReassociation):
 
     def detect_ahead(self, image: np.ndarray) -> Features:
         """:meth:`detect`, plus, where the search is exact (binary descriptors, brute force),
-        the matches with the features this method returned last (``Features.ahead``):
-        the first search :meth:`add_features` makes, against the previous frame with every
-        row free, depends on the two frames alone, so a prefetch worker can make it.
-        :meth:`add_features` uses them only when its previous frame holds those
-        descriptors, so the results are those of :meth:`detect`. One thread calls it, in
-        frame order."""
+        the matches with the features this method returned last and their epipolar RANSAC
+        (``Features.ahead``): the first search :meth:`add_features` makes, against the
+        previous frame with every row free, and its RANSAC (OpenCV's estimators draw from
+        their own fixed seed, not the calling thread's generator) depend on the two frames
+        alone, so a prefetch worker can make them. :meth:`add_features` uses them only when
+        its previous frame holds those descriptors, so the results are those of
+        :meth:`detect`. One thread calls it, in frame order."""
         feats = self.detect(image)
-        previous, self._ahead_previous = self._ahead_previous, feats.descriptors
+        previous, self._ahead_last = self._ahead_last, feats
         if previous is None or self.config.flann_search:
             return feats
         t0 = time.perf_counter()
-        i_new, i_prev = self._matcher.match(feats.descriptors, previous)
-        return replace(feats, ahead=AheadMatch(previous, i_new, i_prev, (time.perf_counter() - t0) * 1e3))
+        i_new, i_prev = self._matcher.match(feats.descriptors, previous.descriptors)
+        inliers = self._epipolar_inliers(feats.uv[i_new], previous.uv[i_prev]) \
+            if len(i_new) >= self.config.min_matches else None
+        return replace(feats, ahead=AheadMatch(previous.descriptors, i_new, i_prev,
+                                               (time.perf_counter() - t0) * 1e3, inliers))
 
     def _thread_detector(self):
         """This thread's OpenCV detector (made on first use: detectors are not thread-safe)."""
@@ -360,12 +365,18 @@ class FrontEnd(FrontEndState, TrackReassociation):
             ia, ib = ahead.idx_new, ahead.idx_previous
         if len(ia) < self.config.min_matches:
             return ia[:0], ib[:0]
-        _, inl = essential_ransac(uv_b[ib], uv_a[ia], self.camera.K,
-                                  self.config.ransac_threshold_px, self.config.ransac_confidence,
-                                  self.config.ransac_method)
+        inl = ahead.inliers if ahead is not None and ahead.inliers is not None \
+            else self._epipolar_inliers(uv_a[ia], uv_b[ib])
         if inl.sum() < self.config.min_matches:
             return ia[:0], ib[:0]
         return ia[inl], ib[inl]
+
+    def _epipolar_inliers(self, uv_new: Array, uv_old: Array) -> NDArray[np.bool_]:
+        """Inliers ``(M,)`` of the five-point RANSAC between matched pixels ``(M, 2)`` of
+        the new and an older frame."""
+        _, inl = essential_ransac(uv_old, uv_new, self.camera.K, self.config.ransac_threshold_px,
+                                  self.config.ransac_confidence, self.config.ransac_method)
+        return inl
 
     def _extend_tracks(self, feats: Features, ids: IntArray, p: int, index: DescriptorIndex,
                        ahead: AheadMatch | None = None) -> int:
