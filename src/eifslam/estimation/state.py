@@ -126,13 +126,14 @@ class StateLayout:
 
     @property
     def pose_ids(self) -> list[int]:
-        """Frame ids of the poses, in state order."""
-        return [k for kind, k in self._order if kind == StateKind.POSE]
+        """Frame ids of the poses, in state order (``O(poses)``: the offsets dict is filled
+        in state order and never shrinks)."""
+        return list(self._pose)
 
     @property
     def feature_ids(self) -> list[int]:
         """Track ids of the features, in state order."""
-        return [k for kind, k in self._order if kind == StateKind.FEATURE]
+        return list(self._feature)
 
     @property
     def n_poses(self) -> int:

@@ -134,7 +134,8 @@ class Tracker:
     # -- references ---------------------------------------------------------------
     def nearest_known(self, k: int) -> list[int]:
         """Known pose ids, nearest to frame *k* first (for a new frame: most recent first)."""
-        return sorted(self.filter.layout.pose_ids, key=lambda c: (abs(c - k), -c))
+        ids = np.asarray(self.filter.layout.pose_ids, np.int64)
+        return ids[np.lexsort((-ids, np.abs(ids - int(k))))].tolist()
 
     def find_reference(self, k: int, timings: dict[str, float], relocalise: bool
                        ) -> tuple[RelativePoseResult | None, RelativePoseResult | None]:
