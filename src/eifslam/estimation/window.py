@@ -78,8 +78,8 @@ class Conditional:
     ----------
     idx : (m,) state entries eliminated.
     b : (m,) their information vector at elimination.
-    C : (m, c) their information coupling to the separator ``cidx`` (dense, or CSR for
-        a rebuild).
+    C : (m, c) their information coupling to the separator ``cidx`` (CSR for features
+        and a rebuild, dense for poses).
     cidx : (c,) separator: entries that were active when ``idx`` was eliminated.
     Dinv : (m/3, 3, 3) features: inverses of the 3x3 information blocks ``A``.
     chol : poses: Cholesky factor of ``A`` (``cho_factor``).
@@ -384,8 +384,10 @@ class ActiveWindow:
             Dinv_m = self._Dinv[fstale]
             self.bp -= Bm.T @ np.einsum("fij,fj->fi", Dinv_m, self.bf[rows].reshape(-1, 3)).ravel()
             nz = np.flatnonzero(np.any(Bm != 0, axis=0))
-            self._conds.append(Conditional(self.fidx[rows], self.bf[rows], Bm[:, nz], self.pidx[nz], Dinv=Dinv_m,
-                                            A=self.D[fstale]))
+            # CSR: a feature is coupled to the few poses that saw it, not to every pose
+            # the batch's features saw (dense, the batch's C was ~80% zeros on the loop world)
+            self._conds.append(Conditional(self.fidx[rows], self.bf[rows], sp.csr_matrix(Bm[:, nz]), self.pidx[nz],
+                                            Dinv=Dinv_m, A=self.D[fstale]))
             self._owner[self.fidx[rows]] = len(self._conds) - 1
             self._pos[self.fidx[rows]] = -1
             keep = ~rows
