@@ -95,6 +95,12 @@ class StateLayout:
         self._feature[track_id] = off
         self._order.append(StateKey(StateKind.FEATURE, track_id))
         self.dim += FEATURE_DIM
+        lut = self.__dict__.get("_lut")
+        if lut is not None:
+            if 0 <= track_id < len(lut):
+                lut[track_id] = off
+            else:
+                self._lut = None  # rebuilt (or given up) at the next vectorised query
         return off
 
     # -- queries --------------------------------------------------------------------
@@ -106,8 +112,34 @@ class StateLayout:
 
     def has_features(self, track_ids) -> NDArray[np.bool_]:
         """Mask of which track ids are features in the state."""
-        f = self._feature
-        return np.fromiter((int(t) in f for t in track_ids), bool, count=len(track_ids))
+        ids = np.asarray(track_ids).reshape(-1)
+        lut = self._feature_lut(ids)
+        if lut is None:
+            f = self._feature
+            return np.fromiter((int(t) in f for t in ids.tolist()), bool, count=len(ids))
+        ids = ids.astype(np.int64, copy=False)
+        inside = (ids >= 0) & (ids < len(lut))
+        out = np.zeros(len(ids), bool)
+        out[inside] = lut[ids[inside]] >= 0
+        return out
+
+    def _feature_lut(self, ids: NDArray) -> IntArray | None:
+        """Feature offset by track id (``-1``: none), for vectorised queries of the integer
+        ids ``ids``; None (use the dict) when the ids are not integers or the largest track
+        id is far beyond the number of features (no array that sparse)."""
+        if not np.issubdtype(ids.dtype, np.integer) and len(ids):
+            return None
+        lut = self.__dict__.get("_lut")
+        if lut is None:
+            top = max(self._feature, default=-1)
+            if min(self._feature, default=0) < 0 or top >= 8 * len(self._feature) + (1 << 16):
+                return None
+            lut = np.full(max(2 * (top + 1), 1024), -1, np.int64)
+            if self._feature:
+                keys = np.fromiter(self._feature.keys(), np.int64, count=len(self._feature))
+                lut[keys] = np.fromiter(self._feature.values(), np.int64, count=len(self._feature))
+            self._lut = lut
+        return lut
 
     @property
     def order(self) -> tuple[StateKey, ...]:
@@ -169,7 +201,17 @@ class StateLayout:
 
     def feature_offsets(self, track_ids) -> IntArray:
         """Offsets ``(N,)`` of features; raises :class:`EstimatorError` on an unknown id."""
-        return np.fromiter((self.feature_offset(t) for t in track_ids), np.int64, count=len(track_ids))
+        ids = np.asarray(track_ids).reshape(-1)
+        lut = self._feature_lut(ids)
+        if lut is None:
+            return np.fromiter((self.feature_offset(t) for t in ids.tolist()), np.int64, count=len(ids))
+        ids = ids.astype(np.int64, copy=False)
+        inside = (ids >= 0) & (ids < len(lut))
+        off = np.full(len(ids), -1, np.int64)
+        off[inside] = lut[ids[inside]]
+        if np.any(off < 0):
+            self.feature_offset(int(ids[np.flatnonzero(off < 0)[0]]))  # raises, naming the id
+        return off
 
     def pose_columns(self, frame_ids) -> IntArray:
         """State indices ``(N, 7)`` of poses."""

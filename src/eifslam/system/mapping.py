@@ -9,6 +9,8 @@ it talks to the front end and the filter through their public methods only.
 
 from __future__ import annotations
 
+from collections import Counter
+
 import time
 
 import numpy as np
@@ -70,6 +72,7 @@ class Mapper:
         self.frontend = frontend
         self.filter = backend
         self._track_obs: dict[int, list[tuple[int, Array]]] = {}
+        self._track_frames: dict[int, set[int]] | None = {}  # per track: frames in _track_obs (None: derive)
         self._colors: dict[int, NDArray[np.uint8]] = {}
 
     # -- sessions -----------------------------------------------------------------
@@ -94,6 +97,7 @@ class Mapper:
         self._track_obs = {}
         for t, k, u in zip(tr.tolist(), fr.tolist(), uv):
             self._track_obs.setdefault(t, []).append((k, u.copy()))
+        self._track_frames = None
         self._colors = {t: c.copy() for t, c in zip(ci.tolist(), col)}
 
     # -- queries ------------------------------------------------------------------
@@ -104,11 +108,21 @@ class Mapper:
     def covisible(self, track_ids) -> dict[int, int]:
         """Frames that observed any of the given tracks (recorded map observations), with
         how many of the tracks each observed: the covisibility of a frame's map tracks."""
-        out: dict[int, int] = {}
+        frames = self._frames_per_track()
+        out: Counter[int] = Counter()
         for t in np.asarray(track_ids, np.int64).reshape(-1).tolist():
-            for k in {j for j, _ in self._track_obs.get(t, [])}:
-                out[k] = out.get(k, 0) + 1
-        return out
+            seen = frames.get(t)
+            if seen:
+                out.update(seen)
+        return dict(out)
+
+    def _frames_per_track(self) -> dict[int, set[int]]:
+        """The frames of each track's recorded observations (kept beside them, derived
+        once after loading a session)."""
+        tf = self.__dict__.get("_track_frames")
+        if tf is None:
+            tf = self._track_frames = {t: {j for j, _ in h} for t, h in self._track_obs.items()}
+        return tf
 
     def record_loop(self, k: int, track_ids, uv: Array) -> None:
         """Record the ``Zm`` a verified loop fused into frame *k* (old map features, found
@@ -129,6 +143,7 @@ class Mapper:
             hist = self._track_obs.setdefault(t, [])
             if not any(j == k for j, _ in hist):
                 hist.append((int(k), u.copy()))
+                self._frames_per_track().setdefault(t, set()).add(int(k))
 
     # -- per frame ----------------------------------------------------------------
     def record_observations(self, k: int) -> tuple[NDArray[np.int64], Array]:
@@ -137,8 +152,10 @@ class Mapper:
         ids, uv = self.frontend.map_observations(k)
         ff = self.frontend.frame(k)
         col = dict(zip(ff.track_ids.tolist(), ff.colors))
+        frames = self._frames_per_track()
         for t, u in zip(ids.tolist(), uv):
             self._track_obs.setdefault(t, []).append((k, u))
+            frames.setdefault(t, set()).add(k)
             if t not in self._colors and t in col:
                 self._colors[t] = np.asarray(col[t], np.uint8)
         return ids, uv
