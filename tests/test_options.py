@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from eifslam.errors import ConfigError, EstimatorError
@@ -36,3 +37,27 @@ def test_state_keys_are_tuples():
     with pytest.raises(EstimatorError):
         StateKey.of(("landmark", 1))
     assert lay.keys_since(1) == [("feature", 7)] and lay.n_states == 2
+
+
+@pytest.mark.parametrize("far", [50, 10**9])
+def test_feature_lookups_agree_with_the_layout_dicts(far):
+    """has_features/feature_offsets (vectorised through a track-id array, or the dict
+    when the ids are too sparse for one) give what the per-id queries give, as the layout grows."""
+    rng = np.random.default_rng(1)
+    lay = StateLayout()
+    ids = [int(v) for v in rng.permutation(40)[:25]] + [far]
+    for n, t in enumerate(ids):
+        lay.add_feature(t)
+        if n % 3 == 0:
+            lay.add_pose(n)
+        ask = np.concatenate([rng.integers(-3, 45, 30), [far, far + 1]])
+        expect = np.array([lay.has_feature(int(a)) for a in ask])
+        np.testing.assert_array_equal(lay.has_features(ask), expect)
+        np.testing.assert_array_equal(lay.has_features(ask.tolist()), expect)
+        known = ask[expect]
+        np.testing.assert_array_equal(lay.feature_offsets(known), [lay.feature_offset(int(a)) for a in known])
+    assert lay.feature_ids == ids and lay.pose_ids == [n for n in range(len(ids)) if n % 3 == 0]
+    missing = next(a for a in range(-3, 45) if not lay.has_feature(a))
+    with pytest.raises(EstimatorError, match=f"feature {missing} is not in the state"):
+        lay.feature_offsets([ids[0], missing])
+    assert lay.has_features([]).shape == (0,) and lay.feature_offsets([]).shape == (0,)
