@@ -18,6 +18,7 @@ import pytest
 from eifslam.errors import ConfigError, EstimatorError, ImageError
 from eifslam.frontend import FrontEnd, FrontEndConfig
 from eifslam.frontend.features import Features
+from eifslam.frontend.matching import essential_ransac
 from eifslam.geometry.camera import PinholeCamera
 from eifslam.system.config import SlamConfig
 from eifslam.system.runner import FramePrefetcher, run_sequence
@@ -362,5 +363,14 @@ def test_matches_made_ahead_give_the_front_ends_own_results(scene_frames):
     for k in (0, 1, 2, 4, 5):
         np.testing.assert_array_equal(a.frame(k).track_ids, b.frame(k).track_ids)
     assert res_a[-1].n_matches > 50
+    # their epipolar RANSAC, made in the worker too: what the tracking thread would get
+    # on those matches, whatever its random generator holds
+    for f, prev in zip(ahead[1:], ahead[:-1]):
+        inl = f.ahead.inliers
+        assert inl is not None and inl.dtype == bool and inl.shape == f.ahead.idx_new.shape and inl.sum() > 20
+        cv2.setRNGSeed(12345)
+        _, again = essential_ransac(prev.uv[f.ahead.idx_previous], f.uv[f.ahead.idx_new], cam.K,
+                                    cfg.ransac_threshold_px, cfg.ransac_confidence, cfg.ransac_method)
+        np.testing.assert_array_equal(again, inl)
     sift = FrontEnd(cam, FrontEndConfig())
     assert all(sift.detect_ahead(im).ahead is None for im in ims[:2])
