@@ -9,9 +9,8 @@ it talks to the front end and the filter through their public methods only.
 
 from __future__ import annotations
 
-from collections import Counter
-
 import time
+from collections import Counter
 
 import numpy as np
 from numpy.typing import NDArray
