@@ -113,15 +113,23 @@ class StateLayout:
     def has_features(self, track_ids) -> NDArray[np.bool_]:
         """Mask of which track ids are features in the state."""
         ids = np.asarray(track_ids).reshape(-1)
-        lut = self._feature_lut(ids)
-        if lut is None:
+        off = self._lookup(ids)
+        if off is None:
             f = self._feature
             return np.fromiter((int(t) in f for t in ids.tolist()), bool, count=len(ids))
+        return off >= 0
+
+    def _lookup(self, ids: NDArray) -> IntArray | None:
+        """Feature offsets ``(N,)`` of track ids ``ids (N,)``, ``-1`` where an id is not a
+        feature; None when :meth:`_feature_lut` cannot serve them (use the dict)."""
+        lut = self._feature_lut(ids)
+        if lut is None:
+            return None
         ids = ids.astype(np.int64, copy=False)
         inside = (ids >= 0) & (ids < len(lut))
-        out = np.zeros(len(ids), bool)
-        out[inside] = lut[ids[inside]] >= 0
-        return out
+        off = np.full(len(ids), -1, np.int64)
+        off[inside] = lut[ids[inside]]
+        return off
 
     def _feature_lut(self, ids: NDArray) -> IntArray | None:
         """Feature offset by track id (``-1``: none), for vectorised queries of the integer
@@ -202,13 +210,9 @@ class StateLayout:
     def feature_offsets(self, track_ids) -> IntArray:
         """Offsets ``(N,)`` of features; raises :class:`EstimatorError` on an unknown id."""
         ids = np.asarray(track_ids).reshape(-1)
-        lut = self._feature_lut(ids)
-        if lut is None:
+        off = self._lookup(ids)
+        if off is None:
             return np.fromiter((self.feature_offset(t) for t in ids.tolist()), np.int64, count=len(ids))
-        ids = ids.astype(np.int64, copy=False)
-        inside = (ids >= 0) & (ids < len(lut))
-        off = np.full(len(ids), -1, np.int64)
-        off[inside] = lut[ids[inside]]
         if np.any(off < 0):
             self.feature_offset(int(ids[np.flatnonzero(off < 0)[0]]))  # raises, naming the id
         return off
