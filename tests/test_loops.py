@@ -207,3 +207,35 @@ def make_scene_camera():
     from eifslam.sim.scene import make_scene
 
     return make_scene(n_frames=3, width=64, height=48).camera
+
+
+@pytest.mark.parametrize("reason,back_off", [("too few PnP inliers", True), ("too few five-point inliers", False)])
+def test_a_place_refused_on_its_map_waits_for_new_consistent_queries(monkeypatch, reason, back_off):
+    """A candidate place whose map features the frame does not fit is verified again only
+    after it came back in ``loop_consistency`` more queries; a refusal by the five-point
+    check with one old frame (another frame of the place may pass) does not wait."""
+    from eifslam.sim.scene import make_scene, render_frame
+    from eifslam.system.loops import LoopCloser
+
+    tried: list[tuple[int, int, int]] = []
+
+    def refuse(self, k, j, score, lo, hi):
+        tried.append((k, lo, hi))
+        self.rejected.append((k, j, reason))
+        return None
+
+    monkeypatch.setattr(LoopCloser, "_verify_and_fuse", refuse)
+    scene = make_scene(n_frames=54, width=320, height=240)
+    idx = list(range(0, 54, 3)) + list(range(0, 33, 3))
+    cfg = SlamConfig.from_dict({"system": {"reobserve_radius_px": 0.0, "mode": "filter", "loop_closure": True}})
+    slam = Slam(scene.camera, cfg)
+    for n, k in enumerate(idx):
+        slam.track(render_frame(scene, k), float(n))
+    need = slam.config.system.loop_consistency
+    assert len(tried) >= 2
+    gaps = [b[0] - a[0] for a, b in zip(tried, tried[1:]) if a[1] <= b[2] and b[1] <= a[2]]
+    assert gaps
+    if back_off:
+        assert min(gaps) >= need
+    else:
+        assert min(gaps) < need

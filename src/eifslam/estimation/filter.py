@@ -382,6 +382,25 @@ class InformationFilter(FilterSessionMixin):
             return self.recover()
         return self.x
 
+    def recover_rebuilt(self) -> Array:
+        """:meth:`recover`, in incremental mode by rebuilding the recovery window (about one
+        full solve) and back-substituting: the window is valid afterwards, so after
+        :meth:`relinearise` the next :meth:`recover_active` needs no second rebuild."""
+        if self.incremental is None:
+            return self.recover()
+        inc = self.incremental
+        inc.on_invalidate()
+        try:
+            inc.step(self.layout, self.info, self._x[: self.dim])
+        except EstimatorError:
+            inc.on_invalidate()
+            return self.recover()
+        inc.full_solution(self._x[: self.dim])
+        if not np.all(np.isfinite(self.x)):
+            inc.on_invalidate()
+            raise EstimatorError("state recovery produced non-finite values")
+        return self.x
+
     def complete_estimate(self) -> Array:
         """Incremental mode: back-substitute every marginalised state (``O(n)``), so that
         ``x`` equals the full solve of the information as of the last

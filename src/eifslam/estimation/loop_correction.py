@@ -158,7 +158,9 @@ def correct_loop(filt: "InformationFilter", j: int, k: int, p_k: Array, q_k: Arr
 def relinearise_all(filt: "InformationFilter", passes: int, tol: float = 1e-6) -> int:
     """Gauss-Newton passes over every stored measurement from the (corrected) estimate:
     each rebuilds ``I``, ``i`` at ``x`` (:meth:`~eifslam.estimation.filter.InformationFilter.relinearise`,
-    paper III-E) and solves the whole state (:meth:`~eifslam.estimation.filter.InformationFilter.recover`).
+    paper III-E) and solves the whole state
+    (:meth:`~eifslam.estimation.filter.InformationFilter.recover_rebuilt`: in incremental
+    mode by a rebuild of the recovery window, which the next frame then uses as it is).
 
     Cheaper than :func:`~eifslam.estimation.smoothing.smooth` (no cost evaluations, no
     damping): after :func:`correct_loop` the estimate is near the optimum and plain
@@ -185,7 +187,7 @@ def relinearise_all(filt: "InformationFilter", passes: int, tol: float = 1e-6) -
         before = filt.x.copy()
         filt.relinearise()
         try:
-            filt.recover()
+            filt.recover_rebuilt()  # the recovery window is valid afterwards: no second rebuild
         except EstimatorError:
             filt.x[:] = before
             filt.relinearise()

@@ -11,8 +11,8 @@ Binary descriptors (ORB, AKAZE) are unpacked to 0/1 floats: the squared Euclidea
 distance between two unpacked descriptors is their Hamming distance, so k-means and the
 nearest-word assignment work in Hamming space without a binary-specific library.
 
-Words are assigned by scikit-learn's :class:`~sklearn.neighbors.NearestNeighbors` over the
-word centres (so a loaded session needs only the centres, not a pickled estimator); the
+Words are assigned by scikit-learn's :func:`~sklearn.metrics.pairwise_distances_argmin` over
+the word centres (so a loaded session needs only the centres, not a pickled estimator); the
 database is a sparse frame-by-word matrix (scipy), and a query is one sparse product
 (cosine similarity) that touches only the frames sharing a word with the query (an
 inverted index by word).
@@ -66,7 +66,6 @@ class PlaceIndex:
         self.seed = int(seed)
         self._centres: NDArray[np.float32] | None = None
         self._idf = np.zeros(0)
-        self._nn = None
         self._pending: list[tuple[int, NDArray[np.float32]]] = []  # frames waiting for the vocabulary
         self._ids: list[int] = []
         self._rows: list[sp.csr_matrix] = []
@@ -149,17 +148,17 @@ class PlaceIndex:
             self._append(fid, w)
 
     def _set_vocabulary(self, centres: NDArray[np.float32], idf: Array | None) -> None:
-        from sklearn.neighbors import NearestNeighbors
-
         self._centres = centres
-        self._nn = NearestNeighbors(n_neighbors=1, algorithm="brute").fit(centres)
         if idf is not None:
             self._idf = idf
 
     def _words(self, F: NDArray[np.float32]) -> IntArray:
+        """The nearest word centre of each row of ``F (N, D)`` (brute force, Euclidean)."""
+        from sklearn.metrics import pairwise_distances_argmin
+
         if len(F) == 0:
             return np.zeros(0, np.int64)
-        return self._nn.kneighbors(F, return_distance=False)[:, 0].astype(np.int64)
+        return pairwise_distances_argmin(F, self._centres).astype(np.int64)
 
     def _index(self, frame_id: int, F: NDArray[np.float32]) -> None:
         self._append(frame_id, self._words(F))

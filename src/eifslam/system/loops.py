@@ -98,6 +98,9 @@ _FIELDS = [f for f in LoopClosure.__dataclass_fields__]
 CHI2_2DOF_99 = 9.21
 """99% quantile of chi-square with 2 degrees of freedom (a pixel residual)."""
 
+_PLACE_REFUSED = ("too few old map features", "too few matches to the map", "PnP failed", "too few PnP inliers")
+"""Verification failures that refuse the candidate's place as a whole (its map features)."""
+
 
 class LoopCloser:
     """Loop detection and fusion for a :class:`~eifslam.system.slam.Slam`.
@@ -175,7 +178,17 @@ class LoopCloser:
         self._streak = streak
         if best is None:
             return None
-        return self._verify_and_fuse(k, *best)
+        n_rejected = len(self.rejected)
+        lc = self._verify_and_fuse(k, *best)
+        if lc is None and len(self.rejected) > n_rejected and self.rejected[-1][2] in _PLACE_REFUSED:
+            # a place whose map the frame does not fit must come back in loop_consistency
+            # more queries before it is verified again: a place that aliases the current one
+            # (repeated texture, a view from too far) is otherwise verified at every frame it
+            # stays a candidate. (A five-point refusal is about the old frame j, not the
+            # place: the next query may propose another frame of it.)
+            lo, hi = best[2:]
+            self._streak = [(a, b, 0 if (a <= hi and lo <= b) else c) for a, b, c in streak]
+        return lc
 
     def place(self, k: int) -> dict[int, int]:
         """Frames covisible with frame *k*, with how many of *k*'s map tracks each observed.
@@ -208,20 +221,20 @@ class LoopCloser:
         for f in range(lo, hi + 1):  # the old map features seen around the candidate, with descriptors
             d = fe.descriptors(f) if f in stored and filt.layout.has_pose(f) else None
             if d is not None:
-                t = fe.frame(f).track_ids
-                has = filt.layout.has_features(t)
-                tids.append(t[has])
-                descs.append(d[has])
+                tids.append(fe.frame(f).track_ids)
+                descs.append(d)
         if not tids:
+            self.rejected.append((k, j, "no old frame with descriptors"))
             return None
         t_all = np.concatenate(tids)
-        fids, first = np.unique(t_all, return_index=True)  # one descriptor per feature: its first
+        has = filt.layout.has_features(t_all)
+        fids, first = np.unique(t_all[has], return_index=True)  # one descriptor per feature: its first
         keep = ~np.isin(fids, fe.frame(k).track_ids)
         if keep.sum() < sysc.loop_min_inliers:
             self.rejected.append((k, j, "too few old map features"))
             return None
         fids = fids[keep].astype(np.int64)
-        D = np.concatenate(descs)[first[keep]]
+        D = np.concatenate(descs)[has][first[keep]]
         fk, fj = fe.frame(k), fe.frame(j)
         dk = fe.descriptors(k)
         # match first: most candidates fail here, and the positions of old (marginalised)
