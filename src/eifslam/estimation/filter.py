@@ -16,6 +16,8 @@ Priors and pseudo-measurements are stored with the measurements, so smoothing
 
 from __future__ import annotations
 
+from contextlib import nullcontext
+
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
@@ -341,6 +343,10 @@ class InformationFilter(FilterSessionMixin):
         self.first_estimates[:] = self.x
         self.info.reset()
         self._factor = None
+        with self.incremental.not_measuring() if self.incremental is not None else nullcontext():
+            self._refuse_all()
+
+    def _refuse_all(self) -> None:
         for fid, (p, q) in self.priors.pose.items():
             self._fuse_pose_prior(fid, p, q)
         if self.priors.scale is not None:

@@ -221,6 +221,7 @@ class IncrementalRecovery(ReactivatingWindow):
         self._pending: list[tuple[IntArray, Array, Array, bool]] = []  # (idx, Lam, eta, a measurement?)
         self._measuring = True
         self._valid = False
+        self._late: list[IntArray] = []  # entries measured while the window was invalid
         self._conds: list[Conditional | None] = []  # elimination order; None once undone
         self._reset_window()
 
@@ -231,7 +232,7 @@ class IncrementalRecovery(ReactivatingWindow):
         and rebuilds from the full ``I`` at its next :meth:`step`. Pickle the owner's
         complete estimate (:meth:`full_solution`) if it is needed after loading."""
         state = self.__dict__.copy()
-        state.update(self.empty_window(), _conds=[], _pending=[], _valid=False,
+        state.update(self.empty_window(), _conds=[], _pending=[], _late=[], _valid=False,
                      _owner=np.full(len(self._owner), -1, np.int64), _pos=np.full(len(self._pos), -1, np.int64))
         return state
 
@@ -266,9 +267,14 @@ class IncrementalRecovery(ReactivatingWindow):
 
     # -- listener -----------------------------------------------------------------------
     def on_add(self, idx: IntArray, Lam: Array, eta: Array) -> None:
-        """Record a fusion (processed at the next :meth:`step`)."""
+        """Record a fusion (processed at the next :meth:`step`). While the window is invalid
+        only which states were measured is kept (the rebuild reads ``I``), so that the
+        rebuild keeps them in the window: e.g. a loop's ``Zm`` of old features fused
+        after the estimate was moved, which the next frames observe again."""
         if self._valid:
             self._pending.append((idx, Lam, eta, self._measuring))
+        elif self._measuring:
+            self._late.append(np.asarray(idx, np.int64).ravel())
 
     @contextmanager
     def not_measuring(self) -> Iterator[None]:
@@ -315,7 +321,8 @@ class IncrementalRecovery(ReactivatingWindow):
         self._owner = np.concatenate([self._owner, np.full(n - len(self._owner), -1, np.int64)])
         pending, self._pending = self._pending, []
         touched = np.concatenate([p[0].ravel() for p in pending]) if pending else np.zeros(0, np.int64)
-        measured = [p[0].ravel() for p in pending if p[3]]
+        measured = [p[0].ravel() for p in pending if p[3]] + self._late
+        self._late = []
         if measured:
             self._last[self._map.start[np.concatenate(measured)]] = s
         restart = False
