@@ -239,3 +239,34 @@ def test_a_place_refused_on_its_map_waits_for_new_consistent_queries(monkeypatch
         assert min(gaps) >= need
     else:
         assert min(gaps) < need
+
+
+def test_matches_to_the_old_frame_refuse_early_exactly_what_the_five_point_check_refuses():
+    """``match_to_frame`` gives ``verify_place`` the same direct matches and required count it
+    finds itself; a frame with fewer matches than required is refused by ``verify_place``
+    too (so refusing it before matching the map changes no outcome)."""
+    from eifslam.frontend.loop_verification import match_to_frame
+    from eifslam.frontend.matching import DescriptorMatcher
+    from eifslam.geometry.camera import PinholeCamera
+    from eifslam.geometry.rotations import rotvec_exp
+
+    rng = np.random.default_rng(4)
+    cam = PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)
+    X = np.column_stack([rng.uniform(-2, 2, 300), rng.uniform(-1.5, 1.5, 300), rng.uniform(4, 8, 300)])
+    desc = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+    R_k, p_k, p_j = rotvec_exp(np.array([0.02, -0.1, 0.01])), np.array([0.3, -0.1, 0.2]), np.array([-0.4, 0.0, 0.0])
+    uv_k, uv_j = _view(rng, cam, R_k, p_k, X), _view(rng, cam, np.eye(3), p_j, X)
+    m = DescriptorMatcher(0.8, True)
+    kw = dict(sigma_px=1.0, p_j=p_j, R_wc_j=np.eye(3), floor=20)
+    ja, jb, need = match_to_frame(cam, m, desc, desc, 1.0, floor=20)
+    assert len(ja) >= need
+    a = verify_place(cam, m, uv_k, desc, X, desc, uv_j, desc, **kw)
+    b = verify_place(cam, m, uv_k, desc, X, desc, uv_j, desc, direct=(ja, jb), **kw)
+    assert a.ok and b.ok and (a.five_point_inliers, a.five_point_required) == (b.five_point_inliers, b.five_point_required)
+    # an old frame that shares only 15 descriptors: too few direct matches, refused either way
+    other = desc.copy()
+    other[15:] = rng.integers(0, 256, (285, 32), dtype=np.uint8)
+    ja, jb, need = match_to_frame(cam, m, desc, other, 1.0, floor=20)
+    assert len(ja) < need
+    c = verify_place(cam, m, uv_k, desc, X, desc, uv_j, other, **kw)
+    assert not c.ok and c.reason == "too few five-point inliers" and c.five_point_required == need

@@ -33,7 +33,7 @@ from .matching import DescriptorMatcher, essential_ransac
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["PlaceCheck", "chi2_radius", "match_to_map", "min_inliers", "verify_place"]
+__all__ = ["PlaceCheck", "chi2_radius", "match_to_frame", "match_to_map", "min_inliers", "verify_place"]
 
 #: 99% quantile of chi-square with 2 degrees of freedom (a pixel residual).
 CHI2_2DOF_99 = 9.21
@@ -132,10 +132,41 @@ def match_to_map(camera: PinholeCamera, matcher: DescriptorMatcher, desc_k: NDAr
     return ia, ib, _map_required(camera, len(ia), sigma_px, floor, alpha, iterations)
 
 
+def _frame_required(camera: PinholeCamera, n: int, sigma_px: float, floor: int, alpha: float, iterations: int) -> int:
+    r = chi2_radius(sigma_px)
+    p_band = 2.0 * r * float(np.hypot(camera.width, camera.height)) / float(camera.width * camera.height)
+    return min_inliers(n, p_band, iterations, alpha, floor)
+
+
+def match_to_frame(camera: PinholeCamera, matcher: DescriptorMatcher, desc_k: NDArray, desc_j: NDArray,
+                   sigma_px: float, floor: int = 25, alpha: float = 1e-6, iterations: int = 1000
+                   ) -> tuple[IntArray, IntArray, int]:
+    """Direct descriptor matches of the current frame to the old frame, and the five-point
+    inlier count :func:`verify_place` will require of them (an epipolar band of the
+    chi-square radius, :func:`min_inliers`).
+
+    Cheaper than :func:`match_to_map` (one frame's descriptors, not a place's): a caller
+    can refuse a candidate with fewer matches than required before matching the map,
+    which :func:`verify_place` would refuse all the same.
+
+    Returns
+    -------
+    ja, jb : (M,) indices into ``desc_k`` and ``desc_j``.
+    required : int
+    """
+    if len(desc_k) < 2 or len(desc_j) < 2:
+        z = np.zeros(0, np.int64)
+        return z, z, max(int(floor), 1)
+    ja, jb = matcher.match(desc_k, np.asarray(desc_j, desc_k.dtype))
+    ja, jb = np.asarray(ja, np.int64), np.asarray(jb, np.int64)
+    return ja, jb, _frame_required(camera, len(ja), sigma_px, floor, alpha, iterations)
+
+
 def verify_place(camera: PinholeCamera, matcher: DescriptorMatcher, uv_k: Array, desc_k: NDArray,
                  X: Array, desc_X: NDArray, uv_j: Array, desc_j: NDArray, sigma_px: float, p_j: Array, R_wc_j: Array, *,
                  max_rot_deg: float = 2.0, min_parallax_deg: float = 2.0, floor: int = 25, alpha: float = 1e-6, iterations: int = 1000,
-                 matches: tuple[IntArray, IntArray] | None = None) -> PlaceCheck:
+                 matches: tuple[IntArray, IntArray] | None = None,
+                 direct: tuple[IntArray, IntArray] | None = None) -> PlaceCheck:
     """Verify that frame *k* sees the place of old map features and of old frame *j*.
 
     Parameters
@@ -164,13 +195,15 @@ def verify_place(camera: PinholeCamera, matcher: DescriptorMatcher, uv_k: Array,
     matches : ((M,), (M,)) int arrays, optional
         The matches of ``desc_k`` to ``desc_X`` when the caller already has them
         (:func:`match_to_map`); rows of ``X`` that no match uses are then never read.
+    direct : ((M,), (M,)) int arrays, optional
+        The matches of ``desc_k`` to ``desc_j`` when the caller already has them
+        (:func:`match_to_frame`).
 
     Returns
     -------
     PlaceCheck
     """
     r = chi2_radius(sigma_px)
-    area = float(camera.width * camera.height)
     if len(desc_k) < 2 or len(desc_X) < 2:
         return PlaceCheck(False, "too few descriptors")
     ia, ib, need = match_to_map(camera, matcher, desc_k, desc_X, sigma_px, floor, alpha, iterations) \
@@ -199,9 +232,8 @@ def verify_place(camera: PinholeCamera, matcher: DescriptorMatcher, uv_k: Array,
     q = rotmat_to_quat(R.T)
     if m < need:
         return PlaceCheck(False, "too few PnP inliers", matches=n, inliers=m, required=need, p=p, q=q)
-    ja, jb = matcher.match(desc_k, np.asarray(desc_j, desc_k.dtype))
-    diag = float(np.hypot(camera.width, camera.height))
-    need5 = min_inliers(len(ja), 2.0 * r * diag / area, iterations, alpha, floor)
+    ja, jb, need5 = match_to_frame(camera, matcher, desc_k, desc_j, sigma_px, floor, alpha, iterations) \
+        if direct is None else (*direct, _frame_required(camera, len(direct[0]), sigma_px, floor, alpha, iterations))
     n5, rot = 0, 180.0
     if len(ja) >= need5:
         E, in5 = essential_ransac(uv_k[ja], uv_j[jb], K, r, 0.9999)

@@ -212,7 +212,7 @@ class LoopCloser:
         return covis
 
     def _verify_and_fuse(self, k: int, j: int, score: float, lo: int, hi: int) -> LoopClosure | None:
-        from ..frontend.loop_verification import match_to_map, verify_place
+        from ..frontend.loop_verification import match_to_frame, match_to_map, verify_place
         from ..geometry.rotations import quat_conjugate, quat_log, quat_multiply, quat_to_rotmat
 
         filt, fe, sysc = self.filter, self.frontend, self.config.system
@@ -237,8 +237,14 @@ class LoopCloser:
         D = np.concatenate(descs)[has][first[keep]]
         fk, fj = fe.frame(k), fe.frame(j)
         dk = fe.descriptors(k)
-        # match first: most candidates fail here, and the positions of old (marginalised)
-        # features need the complete estimate, a back substitution over the whole state
+        # match first, the old frame (cheap) and then the place's map: most candidates fail
+        # here, and the positions of old (marginalised) features need the complete
+        # estimate, a back substitution over the whole state
+        direct = match_to_frame(self.camera, fe.matcher, dk, fe.descriptors(j), self.config.zm_sigma_px,
+                                sysc.loop_min_inliers, sysc.loop_false_alarm)
+        if len(direct[0]) < direct[2]:  # the five-point check would refuse it
+            self.rejected.append((k, j, "too few matches to the old frame"))
+            return None
         ia, ib, need = match_to_map(self.camera, fe.matcher, dk, D, self.config.zm_sigma_px,
                                     sysc.loop_min_inliers, sysc.loop_false_alarm)
         if len(ia) < need:
@@ -250,7 +256,8 @@ class LoopCloser:
         chk = verify_place(self.camera, fe.matcher, fk.uv, dk, X, D, fj.uv, fe.descriptors(j),
                            self.config.zm_sigma_px, filt.pose(j)[0], quat_to_rotmat(filt.pose(j)[1]),
                            max_rot_deg=sysc.agree_rotation_deg, min_parallax_deg=sysc.feature_parallax_deg,
-                           floor=sysc.loop_min_inliers, alpha=sysc.loop_false_alarm, matches=(ia, ib))
+                           floor=sysc.loop_min_inliers, alpha=sysc.loop_false_alarm, matches=(ia, ib),
+                           direct=direct[:2])
         if not chk.ok:
             self.rejected.append((k, j, chk.reason))
             return None
