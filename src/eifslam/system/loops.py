@@ -184,10 +184,11 @@ class LoopCloser:
             # a place whose map the frame does not fit must come back in loop_consistency
             # more queries before it is verified again: a place that aliases the current one
             # (repeated texture, a view from too far) is otherwise verified at every frame it
-            # stays a candidate. (A five-point refusal is about the old frame j, not the
-            # place: the next query may propose another frame of it.)
-            lo, hi = best[2:]
-            self._streak = [(a, b, 0 if (a <= hi and lo <= b) else c) for a, b, c in streak]
+            # stays a candidate. Every candidate place of the query starts again (their
+            # spans overlap in chains, so the count would pass from one to the next). (A
+            # five-point refusal is about the old frame j, not the place: the next query
+            # may propose another frame of it.)
+            self._streak = [(a, b, 0) for a, b, _ in streak]
         return lc
 
     def place(self, k: int) -> dict[int, int]:

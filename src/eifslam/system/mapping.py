@@ -10,7 +10,7 @@ it talks to the front end and the filter through their public methods only.
 from __future__ import annotations
 
 import time
-from collections import Counter
+from itertools import chain
 
 import numpy as np
 from numpy.typing import NDArray
@@ -108,12 +108,11 @@ class Mapper:
         """Frames that observed any of the given tracks (recorded map observations), with
         how many of the tracks each observed: the covisibility of a frame's map tracks."""
         frames = self._frames_per_track()
-        out: Counter[int] = Counter()
-        for t in np.asarray(track_ids, np.int64).reshape(-1).tolist():
-            seen = frames.get(t)
-            if seen:
-                out.update(seen)
-        return dict(out)
+        none: set[int] = set()
+        seen = np.fromiter(chain.from_iterable(frames.get(t, none) for t in np.asarray(track_ids, np.int64)
+                                               .reshape(-1).tolist()), np.int64)
+        f, n = np.unique(seen, return_counts=True)
+        return dict(zip(f.tolist(), n.tolist()))
 
     def _frames_per_track(self) -> dict[int, set[int]]:
         """The frames of each track's recorded observations (kept beside them, derived
