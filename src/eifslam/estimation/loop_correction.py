@@ -158,9 +158,9 @@ def correct_loop(filt: "InformationFilter", j: int, k: int, p_k: Array, q_k: Arr
 def relinearise_all(filt: "InformationFilter", passes: int, tol: float = 1e-6) -> int:
     """Gauss-Newton passes over every stored measurement from the (corrected) estimate:
     each rebuilds ``I``, ``i`` at ``x`` (:meth:`~eifslam.estimation.filter.InformationFilter.relinearise`,
-    paper III-E) and solves the whole state
-    (:meth:`~eifslam.estimation.filter.InformationFilter.recover_rebuilt`: in incremental
-    mode by a rebuild of the recovery window, which the next frame then uses as it is).
+    paper III-E) and solves the whole state (the last pass by
+    :meth:`~eifslam.estimation.filter.InformationFilter.recover_rebuilt`: in incremental
+    mode a rebuild of the recovery window, which the next frame then uses as it is).
 
     Cheaper than :func:`~eifslam.estimation.smoothing.smooth` (no cost evaluations, no
     damping): after :func:`correct_loop` the estimate is near the optimum and plain
@@ -183,11 +183,14 @@ def relinearise_all(filt: "InformationFilter", passes: int, tol: float = 1e-6) -
     """
     ref = 1.0 if filt.priors.scale is None else max(1.0, filt.priors.scale[2])
     done = 0
-    for _ in range(int(passes)):
+    for n in range(int(passes)):
         before = filt.x.copy()
         filt.relinearise()
         try:
-            filt.recover_rebuilt()  # the recovery window is valid afterwards: no second rebuild
+            # the last pass through a rebuild of the recovery window, valid afterwards (no
+            # second rebuild at the next frame); the others by the full solve, which costs
+            # less than a rebuild that keeps a loop's old place in the window
+            filt.recover_rebuilt() if n == int(passes) - 1 else filt.recover()
         except EstimatorError:
             filt.x[:] = before
             filt.relinearise()
