@@ -117,23 +117,27 @@ def test_verify_place_recovers_the_pose_and_refuses_wrong_associations():
                                             "five-point rotation disagrees with the PnP")
 
 
-@pytest.fixture(scope="module")
-def two_laps():
+def _laps(second: int):
     """The built-in scene at 320x240, every third frame of the lap round the table and then
-    the first 21 frames again (re-observation off, so that only place recognition can join
-    the laps)."""
+    its first ``second`` frames again (re-observation off, so that only place recognition
+    can join the laps), run in filter mode with loop closure. The vocabulary comes from the
+    first 12 frames (joined 5 frames later, ``learn_lag``), so the second lap is queried."""
     from eifslam.sim.scene import make_scene, render_frame
 
     scene = make_scene(n_frames=54, width=320, height=240)
-    idx = list(range(0, 54, 3)) + list(range(0, 21, 3))
-    # the vocabulary from the first 12 frames (joined 5 frames later, learn_lag): the
-    # second lap, 7 frames, is then queried
+    idx = list(range(0, 54, 3)) + list(range(0, second, 3))
     cfg = SlamConfig.from_dict({"system": {"reobserve_radius_px": 0.0, "mode": "filter", "loop_closure": True,
                                            "loop_train_frames": 12}})
     slam = Slam(scene.camera, cfg)
     for n, k in enumerate(idx):
         slam.track(render_frame(scene, k), float(n))
     return scene, idx, slam
+
+
+@pytest.fixture(scope="module")
+def two_laps():
+    """The lap and then its first 21 frames again (:func:`_laps`)."""
+    return _laps(21)
 
 
 def test_the_second_lap_closes_the_loop_with_the_right_frames(two_laps):
@@ -243,7 +247,6 @@ def test_a_place_refused_on_its_map_waits_for_new_consistent_queries(monkeypatch
     """A candidate place whose map features the frame does not fit is verified again only
     after it came back in ``loop_consistency`` more queries; a refusal by the five-point
     check with one old frame (another frame of the place may pass) does not wait."""
-    from eifslam.sim.scene import make_scene, render_frame
     from eifslam.system.loops import LoopCloser
 
     tried: list[tuple[int, int, int]] = []
@@ -254,13 +257,7 @@ def test_a_place_refused_on_its_map_waits_for_new_consistent_queries(monkeypatch
         return None
 
     monkeypatch.setattr(LoopCloser, "_verify_and_fuse", refuse)
-    scene = make_scene(n_frames=54, width=320, height=240)
-    idx = list(range(0, 54, 3)) + list(range(0, 33, 3))
-    cfg = SlamConfig.from_dict({"system": {"reobserve_radius_px": 0.0, "mode": "filter", "loop_closure": True,
-                                           "loop_train_frames": 12}})
-    slam = Slam(scene.camera, cfg)
-    for n, k in enumerate(idx):
-        slam.track(render_frame(scene, k), float(n))
+    slam = _laps(33)[2]
     need = slam.config.system.loop_consistency
     assert len(tried) >= 2
     gaps = [b[0] - a[0] for a, b in zip(tried, tried[1:]) if a[1] <= b[2] and b[1] <= a[2]]

@@ -124,12 +124,19 @@ def match_to_map(camera: PinholeCamera, matcher: DescriptorMatcher, desc_k: NDAr
     ia, ib : (M,) indices into ``desc_k`` and ``desc_X``.
     required : int
     """
-    if len(desc_k) < 2 or len(desc_X) < 2:
+    return _matched(matcher, desc_k, desc_X, floor, lambda n: _map_required(camera, n, sigma_px, floor, alpha, iterations))
+
+
+def _matched(matcher: DescriptorMatcher, desc_k: NDArray, desc_o: NDArray, floor: int, required
+             ) -> tuple[IntArray, IntArray, int]:
+    """Matches of ``desc_k`` to ``desc_o`` and ``required(len(matches))`` (none, and the floor,
+    with fewer than two descriptors on a side)."""
+    if len(desc_k) < 2 or len(desc_o) < 2:
         z = np.zeros(0, np.int64)
         return z, z, max(int(floor), 1)
-    ia, ib = matcher.match(desc_k, np.asarray(desc_X, desc_k.dtype))
+    ia, ib = matcher.match(desc_k, np.asarray(desc_o, desc_k.dtype))
     ia, ib = np.asarray(ia, np.int64), np.asarray(ib, np.int64)
-    return ia, ib, _map_required(camera, len(ia), sigma_px, floor, alpha, iterations)
+    return ia, ib, required(len(ia))
 
 
 def _frame_required(camera: PinholeCamera, n: int, sigma_px: float, floor: int, alpha: float, iterations: int) -> int:
@@ -154,12 +161,7 @@ def match_to_frame(camera: PinholeCamera, matcher: DescriptorMatcher, desc_k: ND
     ja, jb : (M,) indices into ``desc_k`` and ``desc_j``.
     required : int
     """
-    if len(desc_k) < 2 or len(desc_j) < 2:
-        z = np.zeros(0, np.int64)
-        return z, z, max(int(floor), 1)
-    ja, jb = matcher.match(desc_k, np.asarray(desc_j, desc_k.dtype))
-    ja, jb = np.asarray(ja, np.int64), np.asarray(jb, np.int64)
-    return ja, jb, _frame_required(camera, len(ja), sigma_px, floor, alpha, iterations)
+    return _matched(matcher, desc_k, desc_j, floor, lambda n: _frame_required(camera, n, sigma_px, floor, alpha, iterations))
 
 
 def verify_place(camera: PinholeCamera, matcher: DescriptorMatcher, uv_k: Array, desc_k: NDArray,
