@@ -27,6 +27,7 @@ from ..geometry.camera import PinholeCamera
 from ..geometry.rotations import quat_normalize
 from . import factors
 from .factors import Linearised
+from .filter_recovery import WindowRecoveryMixin
 from .filter_session import FilterSessionMixin
 from .incremental import IncrementalRecovery, TrackedInformationStore
 from .information import InformationStore
@@ -39,7 +40,7 @@ from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout, pose_tangent_c
 Array = NDArray[np.float64]
 
 
-class InformationFilter(FilterSessionMixin):
+class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
     """Exactly sparse EIF over camera poses and map features.
 
     Satisfies :class:`~eifslam.estimation.backend.Backend` (as does the dense EKF
@@ -368,51 +369,6 @@ class InformationFilter(FilterSessionMixin):
         if not np.all(np.isfinite(x)):
             raise EstimatorError("state recovery produced non-finite values")
         self._x[: self.dim] = x
-        return self.x
-
-    # -- incremental recovery (eifslam.incremental) -------------------------------------
-    def recover_active(self) -> Array:
-        """Per-frame recovery: exact over the active window (``recovery="incremental"``;
-        other states keep their last estimate) or :meth:`recover` (``"full"``)."""
-        if self.incremental is None:
-            return self.recover()
-        if self.online is not None:  # relinearise the window's measurements that moved
-            self.online.step(self)
-        try:
-            self.incremental.step(self.layout, self.info, self._x[: self.dim])
-        except EstimatorError:
-            # the dense window could not be solved (numerically indefinite): rebuild it at
-            # the next step and use the full sparse solve for this one
-            self.incremental.on_invalidate()
-            self.incremental.stats.fallbacks += 1
-            return self.recover()
-        return self.x
-
-    def recover_rebuilt(self) -> Array:
-        """:meth:`recover`, in incremental mode by rebuilding the recovery window (about one
-        full solve) and back-substituting: the window is valid afterwards, so after
-        :meth:`relinearise` the next :meth:`recover_active` needs no second rebuild."""
-        if self.incremental is None:
-            return self.recover()
-        inc = self.incremental
-        inc.on_invalidate()
-        try:
-            inc.step(self.layout, self.info, self._x[: self.dim])
-        except EstimatorError:
-            inc.on_invalidate()
-            return self.recover()
-        inc.full_solution(self._x[: self.dim])
-        if not np.all(np.isfinite(self.x)):
-            inc.on_invalidate()
-            raise EstimatorError("state recovery produced non-finite values")
-        return self.x
-
-    def complete_estimate(self) -> Array:
-        """Incremental mode: back-substitute every marginalised state (``O(n)``), so that
-        ``x`` equals the full solve of the information as of the last
-        :meth:`recover_active`. Full mode: nothing to do."""
-        if self.incremental is not None and self.incremental.valid:
-            self.incremental.full_solution(self._x[: self.dim])
         return self.x
 
     # -- set from outside (issue 11: bundle adjustment in the system layer) ----------------
