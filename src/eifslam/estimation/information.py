@@ -77,8 +77,11 @@ class InformationStore:
         n = self.dim
         base = self._cached
         if base.shape != (n, n):
-            base = base.copy()
-            base.resize((n, n))
+            # the new states' columns are empty: extend the column pointers and share the
+            # entries (a copy and scipy's resize cost ~0.7 s at 35 M non-zeros, this 1 ms);
+            # the matrices handed out are never changed in place
+            base = sp.csc_matrix((base.data, base.indices, np.concatenate(
+                [base.indptr, np.full(n - base.shape[1], base.indptr[-1], base.indptr.dtype)])), shape=(n, n))
         if self._pending:
             r, c, v = self.pending_triplets()
             base = (base + sp.csc_matrix((v, (r, c)), shape=(n, n))).tocsc()
