@@ -16,6 +16,9 @@ Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 
+_INT32_MAX = np.iinfo(np.int32).max
+
+
 class InformationStore:
     """Information matrix ``I`` (sparse, symmetric) and vector ``i`` of a growing state."""
 
@@ -60,6 +63,9 @@ class InformationStore:
         if not (np.all(np.isfinite(Lam)) and np.all(np.isfinite(eta))):
             raise FloatingPointError("refusing to fuse non-finite information")
         k = idx.shape[1]
+        # 32-bit indices while the state allows: summing them into CSC (matrix) is about
+        # twice as fast as with 64-bit ones, and they take half the memory
+        idx = np.asarray(idx, np.int32 if self.dim < _INT32_MAX else np.int64)
         self._rows.append(np.repeat(idx, k, axis=1).ravel())
         self._cols.append(np.tile(idx, (1, k)).ravel())
         self._vals.append(Lam.ravel())
