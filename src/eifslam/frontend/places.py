@@ -12,9 +12,9 @@ distance between two unpacked descriptors is their Hamming distance, so k-means 
 nearest-word assignment work in Hamming space without a binary-specific library.
 
 A word is the nearest word centre (one matrix product, so a loaded session needs only
-the centres, not a pickled estimator); the database is a sparse frame-by-word matrix (scipy), and a query is one sparse product
-(cosine similarity) that touches only the frames sharing a word with the query (an
-inverted index by word).
+the centres, not a pickled estimator); the database is a sparse frame-by-word matrix
+(scipy), and a query is one sparse product (cosine similarity) that touches only the
+frames sharing a word with the query (an inverted index by word).
 """
 
 from __future__ import annotations
@@ -83,6 +83,8 @@ class PlaceIndex:
         self.learn_lag = max(int(learn_lag), 0)
         self._learning: tuple[int, Future] | None = None  # (training frames, k-means in flight)
         self._centres: NDArray[np.float32] | None = None
+        self._c64 = np.zeros((0, 0))  # the centres in double precision, and their squared norms
+        self._c2 = np.zeros(0)
         self._idf = np.zeros(0)
         self._pending: list[tuple[int, NDArray[np.float32]]] = []  # frames waiting for the vocabulary
         self._ids: list[int] = []
@@ -150,8 +152,8 @@ class PlaceIndex:
             ok = np.flatnonzero((np.arange(1, len(total) + 1) >= self.train_frames) & (total >= 2 * self.n_words))
             if len(ok):
                 n = int(ok[0]) + 1
-                fit = partial(_fit_vocabulary, np.concatenate([F for _, F in self._pending[:n]]), self.n_words,
-                              self.seed)
+                fit = partial(_fit_vocabulary, np.concatenate([F for _, F in self._pending[:n] if len(F)]),
+                              self.n_words, self.seed)
                 if self.learn_lag:
                     pool = ThreadPoolExecutor(max_workers=1)
                     future = pool.submit(fit)
