@@ -288,7 +288,9 @@ class IncrementalRecovery(ReactivatingWindow):
             self._measuring = True
 
     def on_invalidate(self) -> None:
-        """``I`` was replaced wholesale: rebuild at the next step."""
+        """``I`` was replaced wholesale: rebuild at the next step. Which states the fusions
+        not yet stepped measured is kept (as for fusions while invalid, :meth:`on_add`)."""
+        self._late += [p[0].ravel() for p in self._pending if p[3]]
         self._valid = False
         self._pending = []
 

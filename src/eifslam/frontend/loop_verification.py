@@ -124,7 +124,8 @@ def match_to_map(camera: PinholeCamera, matcher: DescriptorMatcher, desc_k: NDAr
     ia, ib : (M,) indices into ``desc_k`` and ``desc_X``.
     required : int
     """
-    return _matched(matcher, desc_k, desc_X, floor, lambda n: _map_required(camera, n, sigma_px, floor, alpha, iterations))
+    return _matched(matcher, desc_k, desc_X, floor,
+                    lambda n: _map_required(camera, n, sigma_px, floor, alpha, iterations))
 
 
 def _matched(matcher: DescriptorMatcher, desc_k: NDArray, desc_o: NDArray, floor: int, required
@@ -161,7 +162,8 @@ def match_to_frame(camera: PinholeCamera, matcher: DescriptorMatcher, desc_k: ND
     ja, jb : (M,) indices into ``desc_k`` and ``desc_j``.
     required : int
     """
-    return _matched(matcher, desc_k, desc_j, floor, lambda n: _frame_required(camera, n, sigma_px, floor, alpha, iterations))
+    return _matched(matcher, desc_k, desc_j, floor,
+                    lambda n: _frame_required(camera, n, sigma_px, floor, alpha, iterations))
 
 
 def verify_place(camera: PinholeCamera, matcher: DescriptorMatcher, uv_k: Array, desc_k: NDArray,
