@@ -1,7 +1,9 @@
 """Relative pose ``ZR``, ``ZT`` between two frames from their ``Ωp`` correspondences.
 
-Five-point essential matrix in RANSAC and the cheirality test (OpenCV), a parallax check,
-an optional Gauss-Newton refinement on the inliers' Sampson error, and the covariance
+Five-point essential matrix in RANSAC and the cheirality test (OpenCV); on a pair whose
+inliers a homography mostly explains, the homography's decompositions as further
+hypotheses; an optional Levenberg-Marquardt refinement on the inliers' Sampson error (the
+hypothesis with the most inliers after it wins); a parallax check; and the covariance
 (first order or unscented transform, :mod:`eifslam.frontend.uncertainty`).
 """
 
@@ -33,10 +35,11 @@ from .uncertainty import first_order_covariance, is_valid_covariance, unscented_
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["estimate_relative_pose", "pose_from_essential"]
+__all__ = ["best_supported_pose", "estimate_relative_pose", "pose_from_essential"]
 
-#: a refinement moving the pose further than this (degrees) is rejected as diverged
-_MAX_REFINE_STEP_DEG = 5.0
+#: refinement of a homography's pose (:func:`best_supported_pose`): at most this many rounds of
+#: re-classified inliers, of this many Levenberg-Marquardt steps each
+_CANDIDATE_ROUNDS, _CANDIDATE_ITERATIONS = 3, 5
 
 
 def pose_from_essential(
@@ -61,20 +64,97 @@ def pose_from_essential(
     return R, t, mask.reshape(-1) > 0
 
 
-def _refine(R, t, ui, uj, bi, bj, inl, K, config: FrontEndConfig):
-    """Gauss-Newton on the inliers, re-classify every correspondence by its Sampson
-    residual and cheirality at the refined pose, refine again on the new inlier set."""
-    for _ in range(2):
-        R2, t2, _ = refine_pose(R, t, ui[inl], uj[inl], K, config.refine_iterations)
-        if np.degrees(np.linalg.norm(pose_error(R, t, R2, t2))) > _MAX_REFINE_STEP_DEG:
-            break  # diverged: keep the RANSAC answer
+def _refine(R, t, ui, uj, bi, bj, inl, K, config: FrontEndConfig, rounds: int = 2, iterations: int | None = None):
+    """Levenberg-Marquardt on the inliers, re-classify every correspondence by its Sampson
+    residual and cheirality at the refined pose, refine again on the new inlier set, for at
+    most ``rounds`` rounds of ``iterations`` (default ``config.refine_iterations``) steps.
+    A round that would lose inliers is not taken (the cost of the inliers can fall while the
+    pose moves away from points it explained: a refinement that diverged)."""
+    for _ in range(rounds):
+        R2, t2, _ = refine_pose(R, t, ui[inl], uj[inl], K, iterations or config.refine_iterations)
         r = sampson_residuals(R2, t2, ui, uj, K)
         new = (np.abs(r) < config.ransac_threshold_px) & cheirality_mask(R2, t2, bi, bj)
+        if new.sum() < inl.sum():
+            break
         R, t = R2, t2
-        if np.array_equal(new, inl) or new.sum() < config.min_inliers:
+        if np.array_equal(new, inl):
             break
         inl = new
     return R, t, inl
+
+
+def _homography_poses(ui: Array, uj: Array, K: Array, threshold_px: float, n_inliers: int
+                      ) -> list[tuple[Array, Array]]:
+    """Relative poses ``(R_ij, t_ij)`` (``t`` unit) from the decomposition of a homography
+    fitted to the correspondences in RANSAC (OpenCV), when it holds most of the essential
+    matrix's ``n_inliers``; empty otherwise.
+
+    When most correspondences lie on one plane (a facade), five-point samples are near
+    degenerate and RANSAC can stop at the plane's twin pose, which explains the plane and
+    not the points off it; the homography's decompositions are then the other hypotheses
+    worth scoring."""
+    try:
+        H, mask = cv2.findHomography(np.ascontiguousarray(ui, np.float64), np.ascontiguousarray(uj, np.float64),
+                                     cv2.USAC_DEFAULT, 2.0 * threshold_px)
+    except cv2.error:
+        return []
+    if H is None or mask is None or not np.all(np.isfinite(H)) or 2 * int(mask.sum()) < n_inliers:
+        return []
+    out = []
+    for R_cv, t_cv in zip(*cv2.decomposeHomographyMat(H, np.asarray(K, np.float64))[1:3]):
+        t = -R_cv.T @ np.asarray(t_cv, np.float64).reshape(3)  # as in pose_from_essential
+        n = np.linalg.norm(t)
+        if n > 1e-9:
+            out.append((np.asarray(R_cv.T, np.float64), t / n))
+    return out
+
+
+def best_supported_pose(
+    R: Array, t: Array, inl: NDArray[np.bool_], ui: Array, uj: Array, bi: Array, bj: Array, K: Array,
+    config: FrontEndConfig,
+) -> tuple[Array, Array, NDArray[np.bool_]]:
+    """The refined pose with the most inliers among the essential matrix's and, when a
+    homography holds most of those inliers, its decompositions' (:func:`_homography_poses`).
+
+    Inliers are RANSAC's own criterion: Sampson residual below ``ransac_threshold_px`` and
+    in front of both cameras. On a dominant plane RANSAC can stop at the plane's twin pose;
+    the decompositions are the hypotheses its sampler missed. Ties keep the essential
+    matrix's pose.
+
+    Parameters
+    ----------
+    R : (3, 3) ``R_ij``; t : (3,) unit ``t_ij``
+        The pose from the essential matrix.
+    inl : (N,) bool
+        Its inliers.
+    ui, uj : (N, 2)
+        Undistorted pixels in images *i* and *j*.
+    bi, bj : (N, 3)
+        Their unit bearings, camera frames *i* and *j*.
+    K : (3, 3)
+    config : FrontEndConfig
+        Uses ``refine``, ``refine_iterations``, ``ransac_threshold_px``, ``min_inliers``.
+
+    Returns
+    -------
+    R : (3, 3); t : (3,) unit; inliers : (N,) bool
+    """
+    best = _refine(R, t, ui, uj, bi, bj, inl, K, config) if config.refine else (R, t, inl)
+    for Rh, th in _homography_poses(ui, uj, K, config.ransac_threshold_px, int(best[2].sum())):
+        if np.degrees(np.linalg.norm(pose_error(best[0], best[1], Rh, th))) < 1.0:
+            continue  # the pose already found
+        inl_h = (np.abs(sampson_residuals(Rh, th, ui, uj, K)) < config.ransac_threshold_px) & \
+            cheirality_mask(Rh, th, bi, bj)
+        if inl_h.sum() < config.min_inliers:
+            continue
+        # a decomposition is only near the pose it stands for (the homography fits the plane
+        # alone, and along the plane's ambiguity the cost is flat: the points off the plane
+        # join the inliers a few at a time): more rounds, and the inlier count judges
+        cand = _refine(Rh, th, ui, uj, bi, bj, inl_h, K, config, _CANDIDATE_ROUNDS,
+                       _CANDIDATE_ITERATIONS) if config.refine else (Rh, th, inl_h)
+        if cand[2].sum() > best[2].sum():
+            best = cand
+    return best
 
 
 def _fail(reason: str, n_common: int, t0: float, **kw) -> RelativePoseResult:
@@ -147,11 +227,10 @@ def estimate_relative_pose(
     R, t, inl = pose_from_essential(E, ui, uj, K, inl)
     if inl.sum() < config.min_inliers:
         return _fail(Reason.TOO_FEW_INLIERS, n, t0, n_inliers=int(inl.sum()), parallax_deg=residual)
+    R, t, inl = best_supported_pose(R, t, inl, ui, uj, bi_all, bj_all, K, config)
     parallax = median_parallax_deg(R, bi_all[inl], bj_all[inl])
     if parallax < config.min_parallax_deg:
         return _fail(Reason.NO_PARALLAX, n, t0, n_inliers=int(inl.sum()), parallax_deg=parallax)
-    if config.refine:
-        R, t, inl = _refine(R, t, ui, uj, bi_all, bj_all, inl, K, config)
     n_in = int(inl.sum())
     if n_in < config.min_inliers:
         return _fail(Reason.TOO_FEW_INLIERS, n, t0, n_inliers=n_in, parallax_deg=parallax)
