@@ -1,4 +1,4 @@
-"""A pair dominated by one plane: the essential matrix's twin pose and the homography's
+"""A wide pair dominated by one plane: the essential matrix's twin pose and the homography's
 candidates (:func:`eifslam.frontend.relative_pose.best_supported_pose`)."""
 
 from __future__ import annotations
@@ -8,18 +8,18 @@ import pytest
 
 from eifslam.frontend.config import FrontEndConfig
 from eifslam.frontend.relative_pose import best_supported_pose
-from eifslam.frontend.twoview import cheirality_mask, pose_error, refine_pose, sampson_residuals
+from eifslam.frontend.twoview import cheirality_mask, median_parallax_deg, pose_error, refine_pose, sampson_residuals
 from eifslam.geometry.camera import PinholeCamera
 from eifslam.geometry.rotations import rotvec_exp
 
 
 def _facade(seed: int, n_plane: int = 80, n_off: int = 10, sigma: float = 0.2):
-    """Points on a tilted plane 8 m ahead and a few off it, seen from two cameras 2 m
-    apart; returns the camera, pixels, the true ``R_ij``, unit ``t_ij`` and the plane."""
+    """Points on a tilted plane 8 m ahead and a few off it, seen from two cameras 4.8 m
+    apart; returns the camera, pixels, the true ``R_ij`` and unit ``t_ij``."""
     rng = np.random.default_rng(seed)
     cam = PinholeCamera(500.0, 500.0, 319.5, 239.5, 640, 480)
     R = rotvec_exp(np.radians(12.0) * np.array([0.2, 1.0, 0.1]) / np.linalg.norm([0.2, 1.0, 0.1]))
-    t = np.array([1.8, 0.2, 0.6])  # camera j's centre in camera i
+    t = np.array([4.5, 0.5, 1.5])  # camera j's centre in camera i: 26 deg of parallax, as castle's
     n = np.array([0.3, 0.0, -1.0]) / np.linalg.norm([0.3, 0.0, -1.0])
     pts = []
     while len(pts) < n_plane + n_off:
@@ -65,6 +65,7 @@ def test_a_facades_twin_pose_gives_way_to_the_pose_that_explains_the_points_off_
     Rw, tw = _twin(cam, ui, uj, R, t)
     inl_w = (np.abs(sampson_residuals(Rw, tw, ui, uj, cam.K)) < cfg.ransac_threshold_px) & cheirality_mask(Rw, tw, bi, bj)
     assert 40 <= inl_w.sum() < len(ui) - 3  # the twin explains the plane, not the points off it
+    assert median_parallax_deg(Rw, bi[inl_w], bj[inl_w]) > 5.0  # (a wide pair: the twin is tried)
     Rb, tb, inl = best_supported_pose(Rw, tw, inl_w, ui, uj, bi, bj, cam.K, cfg)
     err = np.degrees(np.linalg.norm(pose_error(Rb, tb, R, t)))
     assert err < 0.5, f"{err:.2f} deg from the true pose"
