@@ -41,6 +41,9 @@ __all__ = ["best_supported_pose", "estimate_relative_pose", "pose_from_essential
 #: refinement of a homography's pose (:func:`best_supported_pose`): at most this many rounds of
 #: re-classified inliers, of this many Levenberg-Marquardt steps each
 _CANDIDATE_ROUNDS, _CANDIDATE_ITERATIONS = 3, 5
+#: ... with Levenberg-Marquardt from this damping (the essential matrix's pose keeps the
+#: undamped Gauss-Newton everything else was measured with)
+_CANDIDATE_DAMPING = 1e-3
 #: a refinement of the essential matrix's pose moving it further than this (degrees) is
 #: rejected as diverged
 _MAX_REFINE_STEP_DEG = 5.0
@@ -83,15 +86,16 @@ def pose_from_essential(
 
 
 def _refine(R, t, ui, uj, bi, bj, inl, K, config: FrontEndConfig, max_step_deg: float = _MAX_REFINE_STEP_DEG,
-            rounds: int = 2, iterations: int | None = None):
-    """Levenberg-Marquardt on the inliers, re-classify every correspondence by its Sampson
-    residual and cheirality at the refined pose, refine again on the new inlier set, for at
-    most ``rounds`` rounds of ``iterations`` (default ``config.refine_iterations``) steps.
+            rounds: int = 2, iterations: int | None = None, damping: float = 0.0):
+    """Gauss-Newton (Levenberg-Marquardt with ``damping``, :func:`refine_pose`) on the
+    inliers, re-classify every correspondence by its Sampson residual and cheirality at the
+    refined pose, refine again on the new inlier set, for at most ``rounds`` rounds of
+    ``iterations`` (default ``config.refine_iterations``) steps.
     A refinement moving the pose by more than ``max_step_deg`` is not taken (diverged: on a
     low-parallax pair the cost is flat along the direction, and a far pose with a few more
     inliers is not a better one)."""
     for _ in range(rounds):
-        R2, t2, _ = refine_pose(R, t, ui[inl], uj[inl], K, iterations or config.refine_iterations)
+        R2, t2, _ = refine_pose(R, t, ui[inl], uj[inl], K, iterations or config.refine_iterations, damping)
         if np.degrees(np.linalg.norm(pose_error(R, t, R2, t2))) > max_step_deg:
             break  # diverged: keep the pose it started from
         r = sampson_residuals(R2, t2, ui, uj, K)
@@ -170,10 +174,11 @@ def best_supported_pose(
         if inl_h.sum() < config.min_inliers:
             continue
         # a decomposition is only near the pose it stands for (the homography fits the plane
-        # alone, and along the plane's ambiguity the cost is flat: the points off the plane
-        # join the inliers a few at a time): more rounds, no step bound, and the test judges
+        # alone, and along the plane's ambiguity the cost is flat and ill-conditioned: the
+        # points off the plane join the inliers a few at a time): damped steps, more rounds,
+        # no step bound, and the test judges
         cand = _refine(Rh, th, ui, uj, bi, bj, inl_h, K, config, np.inf, _CANDIDATE_ROUNDS,
-                       _CANDIDATE_ITERATIONS) if config.refine else (Rh, th, inl_h)
+                       _CANDIDATE_ITERATIONS, _CANDIDATE_DAMPING) if config.refine else (Rh, th, inl_h)
         if _significantly_more(cand[2], best[2]):
             best = cand
     return best

@@ -169,17 +169,18 @@ def sampson_jacobian(R: Array, t: Array, uv_i: Array, uv_j: Array, K: Array) -> 
 
 
 def refine_pose(
-    R0: Array, t0: Array, uv_i: Array, uv_j: Array, K: Array, iterations: int = 3
+    R0: Array, t0: Array, uv_i: Array, uv_j: Array, K: Array, iterations: int = 3, damping: float = 0.0
 ) -> tuple[Array, Array, Array]:
-    """Levenberg-Marquardt refinement of ``(R_ij, t_ij)`` on the Sampson error, batched.
+    """Gauss-Newton (``damping`` 0) or Levenberg-Marquardt refinement of ``(R_ij, t_ij)`` on
+    the Sampson error, batched.
 
-    Each iteration tries one damped Gauss-Newton step per batch element (damping
-    ``lam * diag(JᵀJ)``, ``lam`` from 1e-3, divided by 10 after a step that lowers the
-    element's cost and multiplied by 10 after one that does not, which is then not taken),
-    until every element has converged (a step lowering its cost by less than 1e-10 of it,
-    or ``lam`` above 1e8) or ``iterations`` steps.
-    Near a dominant plane ``JᵀJ`` is ill-conditioned (condition numbers of 1e5 on
-    strecha-castle-p30) and the undamped step can overshoot at every iteration.
+    Each iteration tries one step per batch element, damped by ``lam * diag(JᵀJ)`` with
+    ``lam`` starting at ``damping``, divided by 10 after a step that lowers the element's
+    cost and multiplied by 10 after one that does not, which is then not taken; until every
+    element has converged (a step lowering its cost by less than 1e-10 of it, or ``lam``
+    above 1e8) or ``iterations`` steps. Undamped, a rejected step is tried again unchanged:
+    near a dominant plane ``JᵀJ`` is ill-conditioned (condition numbers of 1e5 on
+    strecha-castle-p30) and Gauss-Newton can stay where it started.
 
     Parameters
     ----------
@@ -189,6 +190,8 @@ def refine_pose(
         Inlier correspondences (undistorted pixels), fixed.
     K : (3, 3)
     iterations : int
+    damping : float
+        Initial ``lam``; 0: undamped Gauss-Newton.
 
     Returns
     -------
@@ -199,7 +202,7 @@ def refine_pose(
     t = t / np.linalg.norm(t, axis=-1, keepdims=True)
     r, J = sampson_jacobian(R, t, uv_i, uv_j, K)
     cost = np.sum(r * r, -1)
-    lam = np.full(cost.shape, 1e-3)
+    lam = np.full(cost.shape, float(damping))
     for _ in range(iterations):
         H = np.swapaxes(J, -1, -2) @ J
         g = np.einsum("...na,...n->...a", J, r)
