@@ -1,10 +1,11 @@
 """Relative pose ``ZR``, ``ZT`` between two frames from their ``Ωp`` correspondences.
 
-Five-point essential matrix in RANSAC and the cheirality test (OpenCV); on a pair whose
-inliers a homography mostly explains, the homography's decompositions as further
-hypotheses; an optional Levenberg-Marquardt refinement on the inliers' Sampson error (the
-hypothesis with the most inliers after it wins); a parallax check; and the covariance
-(first order or unscented transform, :mod:`eifslam.frontend.uncertainty`).
+Five-point essential matrix in RANSAC and the cheirality test (OpenCV), an optional
+Gauss-Newton refinement on the inliers' Sampson error; on a wide pair whose inliers a
+homography mostly explains, the homography's decompositions as further hypotheses (refined
+by Levenberg-Marquardt; one replaces the essential matrix's pose only with significantly
+more inliers, :func:`best_supported_pose`); a parallax check on the pose that is kept; and
+the covariance (first order or unscented transform, :mod:`eifslam.frontend.uncertainty`).
 """
 
 from __future__ import annotations
