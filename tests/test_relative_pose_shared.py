@@ -1,5 +1,6 @@
 """The five-point relative pose on real wide-baseline pairs agrees with the ground truth
-within its own covariance (ground truth used for scoring only).
+within its own covariance, and narrow forward pairs keep their direction (ground truth
+used for scoring only).
 
 strecha-castle-p30 starts with a 24 m, 46° step between frames 0 and 1. On its 69 ``Ωp``
 correspondences a wrong essential matrix (rotation 15° off) has 62 inliers at 1 px, the
@@ -51,3 +52,30 @@ def test_wide_baseline_relative_rotation_is_consistent_with_its_covariance(i, j,
     chi2 = float(dtheta @ np.linalg.solve(m.cov[:3, :3], dtheta))
     assert chi2 < CHI2_3_999, f"rotation {np.degrees(np.linalg.norm(dtheta)):.2f} deg off, chi2 {chi2:.1f}"
     assert np.degrees(np.linalg.norm(dtheta)) < 2.0
+
+
+KITTI = DATASETS / "kitti-seq1"
+
+
+@pytest.mark.skipif(not KITTI.is_dir(),
+                    reason="../shared/datasets/kitti-seq1 is absent (the shared data sets are not checked out)")
+@pytest.mark.parametrize("i, j", [(0, 1), (10, 11)])
+def test_a_narrow_forward_pair_keeps_its_direction(i, j):
+    # with ORB, kitti-seq1's narrow forward pairs (0.7-0.8 deg of parallax) have
+    # homography decompositions 84 deg off the true direction with more inliers at 1 px than
+    # the essential matrix's pose (the pair's near-static points fit them); trying them on
+    # every pair and taking the most inliers ended the run at 4.7 m ATE. Only wide pairs try
+    # them (relative_pose._PLANE_PARALLAX_DEG).
+    from eifslam.io import open_source
+
+    seq = open_source(KITTI)
+    gt = read_tum(KITTI / "groundtruth.tum")
+    fe = Slam(seq.camera, SlamConfig().replace(frontend={"detector": "orb"})).frontend
+    for k in (i, j):
+        fe.add_frame(seq.load(k), k)
+    r = fe.relative_pose(i, j)
+    assert r.ok, r.reason
+    R_i = quat_to_rotmat(gt.quats_wxyz[i])
+    t_true = R_i.T @ (gt.positions[j] - gt.positions[i])
+    cos = float(r.measurement.t_ij @ t_true / np.linalg.norm(t_true))
+    assert np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) < 10.0
