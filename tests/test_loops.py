@@ -245,27 +245,39 @@ def make_scene_camera():
 @pytest.mark.parametrize("reason,back_off", [("too few PnP inliers", True), ("too few five-point inliers", False)])
 def test_a_place_refused_on_its_map_waits_for_new_consistent_queries(monkeypatch, reason, back_off):
     """A candidate place whose map features the frame does not fit is verified again only
-    after it came back in ``loop_consistency`` more queries; a refusal by the five-point
-    check with one old frame (another frame of the place may pass) does not wait."""
+    after it came back in ``loop_consistency`` more queries: the refusal restarts the count
+    of every candidate place of that query; a refusal by the five-point check with one old
+    frame (another frame of the place may pass) restarts none."""
     from eifslam.system.loops import LoopCloser
 
     tried: list[tuple[int, int, int]] = []
+    counts: list[list[int]] = []  # the candidate places' counts right after each refusal
 
     def refuse(self, k, j, score, lo, hi):
         tried.append((k, lo, hi))
         self.rejected.append((k, j, reason))
         return None
 
+    process = LoopCloser.process
+
+    def spy(self, k):
+        n = len(self.rejected)
+        out = process(self, k)
+        if len(self.rejected) > n:
+            counts.append([c for _, _, c in self._streak])
+        return out
+
     monkeypatch.setattr(LoopCloser, "_verify_and_fuse", refuse)
+    monkeypatch.setattr(LoopCloser, "process", spy)
     slam = _laps(33)[2]
     need = slam.config.system.loop_consistency
-    assert len(tried) >= 2
+    assert len(tried) >= 2 and len(counts) == len(tried)
     gaps = [b[0] - a[0] for a, b in zip(tried, tried[1:]) if a[1] <= b[2] and b[1] <= a[2]]
-    assert gaps
     if back_off:
-        assert min(gaps) >= need
+        assert all(c == 0 for cs in counts for c in cs)
+        assert all(g >= need for g in gaps)  # the same place again: not before it came back
     else:
-        assert min(gaps) < need
+        assert all(any(c >= need for c in cs) for cs in counts)
 
 
 def test_matches_to_the_old_frame_refuse_early_exactly_what_the_five_point_check_refuses():
@@ -297,3 +309,22 @@ def test_matches_to_the_old_frame_refuse_early_exactly_what_the_five_point_check
     assert len(ja) < need
     c = verify_place(cam, m, uv_k, desc, X, desc, uv_j, other, **kw)
     assert not c.ok and c.reason == "too few five-point inliers" and c.five_point_required == need
+
+
+def test_a_few_long_tracks_do_not_join_two_places():
+    """Frames count as already joined with a place when they share at least
+    ``loop_min_inliers`` map tracks with it (as many as a verified loop needs inliers) or
+    are reached through a loop frame; a few long tracks re-observed across a revisit (7scenes
+    with SIFT: 1-10 shared tracks with frame 0 at frames 400-499) do not hide the loop.
+    Without any such frame every covisible frame counts (the cautious rule)."""
+    from types import SimpleNamespace
+
+    from eifslam.system.loops import LoopCloser
+
+    config = SlamConfig()
+    lc = LoopCloser(make_scene_camera(), config, SimpleNamespace(), None, None)
+    m = config.system.loop_min_inliers
+    covis = {498: 300, 470: m, 469: m - 1, 3: 2, 0: 1}
+    assert lc._joined(covis, set()) == {498, 470}
+    assert lc._joined(covis, {5}) == {498, 470, 5}
+    assert lc._joined({3: 2, 0: 1}, set()) == {0, 3}

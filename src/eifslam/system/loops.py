@@ -4,10 +4,11 @@ For each frame that became a state of the filter, the :class:`LoopCloser`
 
 1. indexes the frame's descriptors in a bag of visual words
    (:class:`~eifslam.frontend.places.PlaceIndex`);
-2. looks for candidate places among the frames *older than every frame of its place*
-   (:meth:`LoopCloser.place`: the frames that share a map track with it, and through a
-   loop frame among them the old place that loop joined; the exclusion is the frame's
-   covisibility, not a fixed count), whose
+2. looks for candidate places among the frames *older than every frame its place is
+   already joined with* (:meth:`LoopCloser._joined`: the frames that share at least
+   ``loop_min_inliers`` map tracks with it, and through a loop frame among them the old
+   place that loop joined; the exclusion is the frame's covisibility, not a fixed count
+   of frames; a few long tracks do not join two places), whose
    similarity reaches the lowest similarity of the frame to its strongly covisible
    frames (those sharing at least ``loop_min_inliers`` map tracks; ORB-SLAM's rule);
    a candidate whose own place reaches a frame as recent as the current place's oldest
@@ -141,18 +142,19 @@ class LoopCloser:
         desc = self.frontend.descriptors(k)
         if desc is None or len(desc) < 2 or not self.index.add(k, desc):
             return None
-        covis = self.place(k)
+        covis, hop = self._place_parts(k)
         covis.pop(k, None)
-        if not covis:
+        hop.discard(k)
+        if not covis and not hop:
             self._streak = []
             return None
-        oldest = min(covis)
         sysc = self.config.system
+        oldest = min(self._joined(covis, hop))
         ids = np.array(self.index.frame_ids, np.int64)
         scores = self.index.query(self.index.vector(k))
         pos = {int(f): i for i, f in enumerate(ids)}
         strong = [f for f, n in covis.items() if n >= sysc.loop_min_inliers and f in pos]
-        if not strong:
+        if not strong and covis:
             strong = [max(covis)] if max(covis) in pos else []
         if not strong:
             self._streak = []
@@ -163,7 +165,7 @@ class LoopCloser:
         streak, best = [], None
         for i in cand[:5]:
             j = int(ids[i])
-            span = self.place(j)
+            span = self._joined(*self._place_parts(j))
             lo, hi = (min(span), max(span)) if span else (j, j)
             lo, hi = min(lo, j), max(hi, j)
             if hi >= oldest:
@@ -201,16 +203,33 @@ class LoopCloser:
         count 0: they do not enter the score threshold). Without that hop the frames after
         a loop, which track the features of the second visit rather than the old ones,
         would find the same place again and again."""
+        covis, hop = self._place_parts(k)
+        for f in hop:
+            covis.setdefault(f, 0)
+        return covis
+
+    def _place_parts(self, k: int) -> tuple[dict[int, int], set[int]]:
+        """:meth:`place` in two parts: the frames sharing map tracks with frame *k* (with
+        how many), and the frames reached through a loop frame among them (the hop)."""
         mids, _ = self.frontend.map_observations(k)
         own = self._loop_tracks.get(int(k))
         if own is not None:
             mids = np.union1d(mids, own)
         covis = self.mapper.covisible(mids)
         hop = [self._loop_tracks[f] for f in covis if f in self._loop_tracks and f != k]
-        if hop:
-            for f in self.mapper.covisible(np.unique(np.concatenate(hop))):
-                covis.setdefault(f, 0)
-        return covis
+        reached = set(self.mapper.covisible(np.unique(np.concatenate(hop)))) if hop else set()
+        return covis, reached
+
+    def _joined(self, covis: dict[int, int], hop: set[int]) -> set[int]:
+        """The frames the map already joins with a place: those sharing at least
+        ``loop_min_inliers`` map tracks with it (as many as a verified loop must have
+        inliers) and those reached through a loop frame. A few long tracks re-observed
+        across a revisit (SIFT keeps some over hundreds of frames) do not join two places:
+        the loop they hint at still has to be found and verified. Without any such frame,
+        every covisible frame counts (the old rule, the cautious one)."""
+        m = self.config.system.loop_min_inliers
+        joined = {f for f, n in covis.items() if n >= m} | hop
+        return joined if joined else set(covis)
 
     def _verify_and_fuse(self, k: int, j: int, score: float, lo: int, hi: int) -> LoopClosure | None:
         from ..frontend.loop_verification import match_to_frame, match_to_map, verify_place
