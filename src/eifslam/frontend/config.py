@@ -77,6 +77,12 @@ class FrontEndConfig:
         Images are resized by this factor (``INTER_AREA``) before detection and the
         keypoints scaled back to full-resolution pixels (1: detect at full resolution).
         Colours and the Laplacian sign are taken from the full-resolution image.
+    normalise_gain : bool
+        Before detection, scale the grayscale image so that its 99.99th percentile becomes
+        255 (brighter only; :func:`~eifslam.frontend.features.normalise_gain`). The
+        detectors' thresholds (SIFT's contrast, FAST's intensity step) are absolute
+        intensities, so without it a dark image (a dark object, a short exposure, 12-bit
+        data in 16-bit files) gives few keypoints (docs/frontend.md, "Dark images").
     color_order : {"bgr", "rgb"}
         Channel order of 3-channel input images (OpenCV's ``imread`` gives BGR).
     map_fraction : float in [0, 1]
@@ -156,6 +162,7 @@ class FrontEndConfig:
     sift_contrast_threshold: float = 0.04
     orb_candidates: float = 1.0
     detect_scale: float = 1.0
+    normalise_gain: bool = True
     color_order: str = "bgr"
     # split of tracks between relative poses (Ωp) and the map (Ωm)
     map_fraction: float = 0.5
@@ -219,7 +226,7 @@ class FrontEndConfig:
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
                 raise bad(key, f"must be an integer >= {lo}")
-        for key in ("mutual", "refine"):
+        for key in ("mutual", "refine", "normalise_gain"):
             if not isinstance(getattr(self, key), bool):
                 raise bad(key, "must be a bool")
         checks = {

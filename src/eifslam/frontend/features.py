@@ -25,7 +25,7 @@ from .split import laplacian_sign
 Array = NDArray[np.float64]
 
 __all__ = ["AheadMatch", "Features", "spread_keypoints", "check_image", "make_detector", "detect_features", "undistort_pixels",
-           "set_opencv_threads", "opencv_threads"]
+           "set_opencv_threads", "opencv_threads", "normalise_gain"]
 
 
 @dataclass(frozen=True)
@@ -222,6 +222,39 @@ def _gray_and_rgb(image: np.ndarray, color_order: str) -> tuple[np.ndarray, np.n
     return cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY), rgb
 
 
+GAIN_PERCENTILE = 99.99
+"""Percentile of the grayscale image that :func:`normalise_gain` maps to 255."""
+
+
+def normalise_gain(gray: np.ndarray, percentile: float = GAIN_PERCENTILE) -> np.ndarray:
+    """Scale a ``uint8`` grayscale image so that its ``percentile`` becomes 255.
+
+    Detection thresholds are absolute intensities (SIFT's contrast threshold on the
+    image in ``[0, 1]``, FAST's intensity step), while a camera's gain or exposure
+    scales every intensity: normalising the gain makes the keypoints of a dark image
+    those of the same image well exposed. Only brightens (a gain below 1 is not
+    applied); the percentile rather than the maximum, so that a few specular or hot
+    pixels do not set the gain. Descriptors (SIFT's normalised gradients, ORB's
+    comparisons) are unaffected by a gain.
+
+    Parameters
+    ----------
+    gray : (H, W) uint8
+    percentile : float in (0, 100]
+
+    Returns
+    -------
+    (H, W) uint8
+        ``gray`` itself when no gain above 1 is needed (or the image is black), else
+        ``round(gray * g)`` saturated at 255, ``g = 255 / P``.
+    """
+    hist = np.bincount(gray.reshape(-1), minlength=256)
+    level = int(np.searchsorted(np.cumsum(hist), percentile / 100.0 * gray.size))
+    if level <= 0 or level >= 255:
+        return gray
+    return cv2.convertScaleAbs(gray, alpha=255.0 / level)
+
+
 def detect_features(
     image: np.ndarray, camera: PinholeCamera, config: FrontEndConfig, detector: "cv2.Feature2D"
 ) -> Features:
@@ -251,6 +284,8 @@ def detect_features(
     t0 = time.perf_counter()
     img = check_image(image, camera)
     gray, rgb = _gray_and_rgb(img, config.color_order)
+    if config.normalise_gain:
+        gray = normalise_gain(gray)
     s = float(config.detect_scale)
     if s < 1.0:
         small = cv2.resize(gray, (max(1, round(gray.shape[1] * s)), max(1, round(gray.shape[0] * s))),

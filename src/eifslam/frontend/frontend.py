@@ -21,7 +21,7 @@ from ..geometry.camera import PinholeCamera
 from ..errors import EstimatorError
 from .config import FrontEndConfig
 from .features import AheadMatch, Features, detect_features, make_detector
-from .matching import DescriptorIndex, DescriptorMatcher, essential_ransac
+from .matching import DescriptorIndex, DescriptorMatcher, essential_ransac, homography_inliers
 from .reassociation import TrackReassociation
 from .relative_pose import estimate_relative_pose
 from .results import FrameFeatures, FrameResult, Reason, RelativePoseResult
@@ -374,8 +374,12 @@ class FrontEnd(FrontEndState, TrackReassociation):
     def _epipolar_inliers(self, uv_new: Array, uv_old: Array) -> NDArray[np.bool_]:
         """Inliers ``(M,)`` of the five-point RANSAC between matched pixels ``(M, 2)`` of
         the new and an older frame."""
-        _, inl = essential_ransac(uv_old, uv_new, self.camera.K, self.config.ransac_threshold_px,
-                                  self.config.ransac_confidence, self.config.ransac_method)
+        c = self.config
+        E, inl = essential_ransac(uv_old, uv_new, self.camera.K, c.ransac_threshold_px, c.ransac_confidence,
+                                  c.ransac_method)
+        if E is None:  # no parallax (e.g. the same view twice): degenerate for E, not for H
+            inl = homography_inliers(uv_old, uv_new, 2.0 * c.ransac_threshold_px, c.ransac_confidence,
+                                     c.ransac_method)
         return inl
 
     def _extend_tracks(self, feats: Features, ids: IntArray, p: int, index: DescriptorIndex,
