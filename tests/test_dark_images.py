@@ -36,9 +36,9 @@ def _dark(img: np.ndarray, factor: float) -> np.ndarray:
 
 
 def test_normalise_gain_restores_a_darkened_image(image):
-    """A darker exposure normalises to the normalised bright one (up to the dark image's
-    quantisation, amplified by the gain)."""
-    ref = normalise_gain(image).astype(float)
+    """A darker exposure (brightest pixels below half the range) normalises to the bright
+    image scaled to full range (up to the dark image's quantisation, amplified by the gain)."""
+    ref = normalise_gain(image, min_gain=1.0).astype(float)
     for factor in (0.5, 0.3, 0.15):
         out = normalise_gain(_dark(image, factor))
         assert np.percentile(out, 99.99) >= 250
@@ -50,6 +50,9 @@ def test_normalise_gain_leaves_bright_and_black_images_alone(image):
     bright = image.copy()
     bright[:10, :] = 255  # more than 0.5% of the pixels at 255
     assert normalise_gain(bright) is bright
+    dim = _dark(image, 0.6)  # within one stop of full range: kept exactly
+    assert normalise_gain(dim) is dim
+    assert normalise_gain(dim, min_gain=1.0) is not dim
     black = np.zeros((480, 640), np.uint8)
     assert normalise_gain(black) is black
     hot = _dark(image, 0.3)

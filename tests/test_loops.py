@@ -198,14 +198,11 @@ def test_a_fused_loop_joins_its_frame_and_the_frames_after_it_with_the_old_place
     assert c.matched_frame in place_k
     for k in range(c.frame + 1, len(idx)):  # later second-lap frames reach the old place too
         assert c.matched_frame in slam.loops.place(k)
-    # the frames of the old place now joined with it (sharing at least loop_min_inliers map
-    # tracks) are first-lap frames that see the same part of the table as the loop frame
-    # (ground truth used for scoring only); a few long tracks reach further (a feature on
-    # the table seen 120 deg apart), which is why they do not join places (LoopCloser._joined)
-    m = slam.config.system.loop_min_inliers
-    old = [f for f, n in place_k.items() if f < lap and n >= m]
+    # the frames of the old place that are now covisible are first-lap frames that see the
+    # same part of the table as the loop frame (ground truth used for scoring only)
+    old = [f for f in place_k if f < lap]
     assert old
-    for f in old:  # up to 15 scene frames (100 deg) apart here
+    for f in old:  # frames sharing a map track with the loop frame: up to 15 scene frames (100 deg) apart here
         gap = abs(idx[c.frame] - idx[f]) % 54
         assert min(gap, 54 - gap) <= 15
     # at most one loop per revisit: no later loop matches a frame of an earlier loop's place

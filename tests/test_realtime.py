@@ -270,11 +270,8 @@ def test_detect_scale_gives_full_resolution_pixels():
         cv2.circle(img, (int(x), int(y)), 12, 220, -1, lineType=cv2.LINE_AA)
     img = cv2.GaussianBlur(img, (0, 0), 2.0)
     cam = PinholeCamera(500.0, 500.0, (w - 1) / 2, (h - 1) / 2, w, h)
-    # without the gain normalisation: it would scale this image by 255/220, a gain at which
-    # OpenCV's SIFT at half size drops one of the four identical blobs (1.1 and 1.2 keep all
-    # four); the test is about the keypoints' coordinates
-    full = FrontEnd(cam, FrontEndConfig(normalise_gain=False)).detect(img)
-    half = FrontEnd(cam, FrontEndConfig(detect_scale=0.5, normalise_gain=False)).detect(img)
+    full = FrontEnd(cam, FrontEndConfig()).detect(img)
+    half = FrontEnd(cam, FrontEndConfig(detect_scale=0.5)).detect(img)
     for f in (full, half):
         for c in centres:
             d = np.linalg.norm(f.uv_raw - np.array(c), axis=1)

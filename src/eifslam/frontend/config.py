@@ -78,11 +78,12 @@ class FrontEndConfig:
         keypoints scaled back to full-resolution pixels (1: detect at full resolution).
         Colours and the Laplacian sign are taken from the full-resolution image.
     normalise_gain : bool
-        Before detection, scale the grayscale image so that its 99.99th percentile becomes
-        255 (brighter only; :func:`~eifslam.frontend.features.normalise_gain`). The
-        detectors' thresholds (SIFT's contrast, FAST's intensity step) are absolute
-        intensities, so without it a dark image (a dark object, a short exposure, 12-bit
-        data in 16-bit files) gives few keypoints (docs/frontend.md, "Dark images").
+        Before detection, scale a dark grayscale image (its 99.99th percentile below half
+        the range) so that the percentile becomes 255
+        (:func:`~eifslam.frontend.features.normalise_gain`). The detectors' thresholds
+        (SIFT's contrast, FAST's intensity step) are absolute intensities, so without it a
+        dark image (a dark object, a short exposure, 12-bit data in 16-bit files) gives
+        few keypoints or none (docs/frontend.md, "Dark images").
     color_order : {"bgr", "rgb"}
         Channel order of 3-channel input images (OpenCV's ``imread`` gives BGR).
     map_fraction : float in [0, 1]

@@ -225,32 +225,39 @@ def _gray_and_rgb(image: np.ndarray, color_order: str) -> tuple[np.ndarray, np.n
 GAIN_PERCENTILE = 99.99
 """Percentile of the grayscale image that :func:`normalise_gain` maps to 255."""
 
+GAIN_MIN = 2.0
+"""Smallest gain :func:`normalise_gain` applies: images whose brightest pixels reach half
+the range (exposed within one stop of full) are left as they are."""
 
-def normalise_gain(gray: np.ndarray, percentile: float = GAIN_PERCENTILE) -> np.ndarray:
-    """Scale a ``uint8`` grayscale image so that its ``percentile`` becomes 255.
+
+def normalise_gain(gray: np.ndarray, percentile: float = GAIN_PERCENTILE, min_gain: float = GAIN_MIN) -> np.ndarray:
+    """Scale a dark ``uint8`` grayscale image so that its ``percentile`` becomes 255.
 
     Detection thresholds are absolute intensities (SIFT's contrast threshold on the
     image in ``[0, 1]``, FAST's intensity step), while a camera's gain or exposure
-    scales every intensity: normalising the gain makes the keypoints of a dark image
-    those of the same image well exposed. Only brightens (a gain below 1 is not
-    applied); the percentile rather than the maximum, so that a few specular or hot
-    pixels do not set the gain. Descriptors (SIFT's normalised gradients, ORB's
-    comparisons) are unaffected by a gain.
+    scales every intensity: normalising the gain gives a dark image the keypoints of the
+    same image well exposed. The percentile rather than the maximum, so that a few
+    specular or hot pixels do not set the gain. Descriptors (SIFT's normalised
+    gradients, ORB's comparisons) are unaffected by a gain.
+
+    Only a gain of at least ``min_gain`` is applied: a normally exposed image keeps its
+    pixels (and its keypoints) exactly; docs/frontend.md, "Dark images", measures why.
 
     Parameters
     ----------
     gray : (H, W) uint8
     percentile : float in (0, 100]
+    min_gain : float >= 1
 
     Returns
     -------
     (H, W) uint8
-        ``gray`` itself when no gain above 1 is needed (or the image is black), else
-        ``round(gray * g)`` saturated at 255, ``g = 255 / P``.
+        ``gray`` itself when the gain ``g = 255 / P`` is below ``min_gain`` (or the
+        image is black), else ``round(gray * g)`` saturated at 255.
     """
     hist = np.bincount(gray.reshape(-1), minlength=256)
     level = int(np.searchsorted(np.cumsum(hist), percentile / 100.0 * gray.size))
-    if level <= 0 or level >= 255:
+    if level <= 0 or 255.0 / level < min_gain:
         return gray
     return cv2.convertScaleAbs(gray, alpha=255.0 / level)
 
