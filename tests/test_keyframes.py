@@ -169,3 +169,27 @@ def test_frames_between_keyframes_follow_their_keyframe_when_the_map_moves():
         # the same pose carried by the rigid motion, up to the re-localisation's noise
         assert np.linalg.norm(p_new - (R @ p_old + t)) < 0.02
         assert np.linalg.norm(p_new - p_old) > 5.0
+
+
+def test_smoothing_a_finished_filter_run_moves_the_frames_between_keyframes_too():
+    """``Slam.smooth()`` called on a run finished in filter mode gives every frame the
+    trajectory a smooth-mode run gives: the frames between keyframes are re-localised on
+    the smoothed map (before, they kept their filter-mode poses; on kitti-07 that gave ATE
+    2.19 m against the smooth mode's 0.446 m for the same smoothed keyframes)."""
+    sc, slam = run(keyframes=True, frames=30)
+    between = [r.frame_id for r in slam.results if not r.keyframe]
+    assert between
+    before = {j: slam.results[j].position.copy() for j in between}
+    slam.smooth()
+    moved = max(np.linalg.norm(slam.results[j].position - before[j]) for j in between)
+    assert moved > 1e-6  # the smoothed map moved them
+    t, P, Q = slam.trajectory()
+    # a smooth-mode run of the same frames: the same trajectory for every frame
+    sc2 = corridor_scene(30, np.random.default_rng(2), step=0.05, points_per_metre=30.0)
+    fe = SyntheticFrontEnd(sc2, 2, map_fraction=0.6)
+    ref = Slam(sc2.camera, fe.slam_config(system={"mode": "smooth", "keyframes": True,
+                                                  "keyframe_parallax_deg": 2.0}), frontend=fe)
+    for k in range(30):
+        ref.track(k, 0.1 * k)
+    ref.finish()
+    np.testing.assert_allclose(P, ref.trajectory()[1], atol=1e-6)

@@ -352,7 +352,10 @@ class Slam:
         return retry_passes(self, max_passes, first_map_only)
 
     def smooth(self, max_passes: int | None = None) -> SmoothingReport:
-        """Relinearise every stored measurement and recover (paper III-E)."""
+        """Relinearise every stored measurement and recover (paper III-E); the frames
+        between keyframes are then re-localised on the smoothed map
+        (:meth:`refine_between_keyframes`), so that :meth:`trajectory` is the smoothed one
+        for every frame, however this is called."""
         if self.filter.layout.n_poses < 2:
             raise EifslamError("nothing to smooth: fewer than two poses are tracked")
         self.filter.complete_estimate()
@@ -361,14 +364,17 @@ class Slam:
             if sysc.robust_smoothing else {}
         self.smoothing = smooth(self.filter, max_passes or sysc.smooth_passes,
                                 estimate_noise=sysc.smoothing_noise_estimate, **gates)
+        self.refine_between_keyframes()
         return self.smoothing
 
     def bundle_adjust(self, config: BAConfig | None = None) -> BAResult:
         """Bundle-adjust every track and make the result the estimate
-        (:func:`~.finishing.bundle_adjust_slam`)."""
+        (:func:`~.finishing.bundle_adjust_slam`); the frames between keyframes are then
+        re-localised on the adjusted map, as after :meth:`smooth`."""
         if self.filter.layout.n_poses < 2:
             raise EifslamError("nothing to adjust: fewer than two poses are tracked")
         self.bundle_adjustment = bundle_adjust_slam(self, config)
+        self.refine_between_keyframes()
         return self.bundle_adjustment
 
     def finish(self, retry: bool = True, images: Callable[[int], np.ndarray] | None = None) -> FinishReport:
@@ -390,17 +396,21 @@ class Slam:
         if self.filter.layout.n_poses < 2:
             return rep
         mode = Mode(self.config.system.mode)
+        refined = False  # smooth() and bundle_adjust() re-localise the frames between keyframes
         if mode is Mode.SMOOTH:
             try:
                 rep.smoothing = self.smooth()
+                refined = True
             except EifslamError as exc:
                 rep.failures.append(f"smoothing failed: {exc}")
         elif mode is Mode.BA:
             try:
                 rep.ba = self.bundle_adjust()
+                refined = True
             except EifslamError as exc:
                 rep.failures.append(f"bundle adjustment failed: {exc}")
-        self.refine_between_keyframes()
+        if not refined:
+            self.refine_between_keyframes()
         return rep
 
     def refine_between_keyframes(self) -> int:
