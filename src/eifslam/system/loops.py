@@ -165,14 +165,17 @@ class LoopCloser:
         streak, best = [], None
         for i in cand[:5]:
             j = int(ids[i])
-            span = self._joined(*self._place_parts(j))
-            lo, hi = (min(span), max(span)) if span else (j, j)
-            lo, hi = min(lo, j), max(hi, j)
-            if hi >= oldest:
-                # the candidate's place already reaches a frame as recent as the current
-                # place (shares map tracks with it, or an earlier loop joined it to the
-                # trajectory since): the map joins the two, so this is no new loop
+            near, hop_j = self._place_parts(j)
+            if max(self._joined(near, hop_j) | {j}) >= oldest:
+                # the candidate's place is already joined with a frame as recent as the
+                # current place (shares loop_min_inliers map tracks with it, or an earlier
+                # loop joined it to the trajectory since): this is no new loop
                 continue
+            # the place verified and counted: every frame covisible with the candidate
+            # (their map features are what the frame is matched against), older than the
+            # current place
+            span = [f for f in set(near) | hop_j | {j} if f < oldest]
+            lo, hi = min(span), max(span)
             n = 1 + max([c for a, b, c in self._streak if a <= hi and lo <= b], default=0)
             streak.append((lo, hi, n))
             if best is None and n >= sysc.loop_consistency:
