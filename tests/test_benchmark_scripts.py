@@ -313,3 +313,28 @@ def test_loo_study_choice_and_outputs(tmp_path, monkeypatch):
     assert [t["chosen"] for t in res["table"]] == [0.9999, 0.9999]
     text = docs.read_text()
     assert "Leave-one-data-set-out" in text and "| kitti-seq1 | 0.9999 |" in text
+
+
+DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
+
+
+def test_dark_ring_refuses_bad_input(tmp_path):
+    dark_ring = _load("dark_ring")
+    assert dark_ring.main(["--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 2  # no templering
+    if (DATASETS / "middlebury-templering").is_dir():
+        assert dark_ring.main(["--data", str(DATASETS), "--out", str(tmp_path / "o"), "--factors", "2"]) == 2
+
+
+@pytest.mark.skipif(not (DATASETS / "middlebury-templering").is_dir(), reason="../shared/datasets absent")
+def test_dark_ring_writes_its_rings_and_figures(tmp_path, capsys):
+    """Every 10th templering view (4) at 30% brightness: the ring's images are that dark
+    (the 99.99th percentile recorded), both settings run, the JSON holds both rows."""
+    dark_ring = _load("dark_ring")
+    assert dark_ring.main(["--data", str(DATASETS), "--out", str(tmp_path), "--factors", "0.3", "--step", "10",
+                           "--mode", "filter"]) in (0, 1)
+    doc = json.loads((tmp_path / "dark_ring.json").read_text())
+    rows = doc["rows"]
+    assert [r["normalise_gain"] for r in rows] == [False, True]
+    assert all(r["views"] == 4 and 50 < r["level_min"] <= r["level_max"] < 90 for r in rows)
+    assert len(list((tmp_path / "rings" / "x0.3" / "images").iterdir())) == 4
+    assert "| 0.3 | sift |" in capsys.readouterr().out
