@@ -346,3 +346,32 @@ def test_video(tmp_path):
     (tmp_path / "broken.mp4").write_bytes(b"garbage")
     with pytest.raises(DatasetError, match="broken.mp4"):
         open_source(tmp_path / "broken.mp4", camera=CAM)
+
+
+@pytest.mark.parametrize("bits", [10, 12, 14, 16])
+def test_sixteen_bit_files_keep_the_bits_their_data_uses(tmp_path, bits):
+    """A 10/12/14-bit camera's frames in 16-bit PNGs keep their 8 highest bits (OpenCV's own
+    conversion kept the top 8 of 16: 16 grey levels of a 12-bit image); colour and
+    grayscale reads alike."""
+    import cv2
+
+    from eifslam.io.images import read_image, sensor_bits
+
+    rng = np.random.default_rng(bits)
+    top = (1 << bits) - 1
+    img = rng.integers(0, top + 1, size=(48, 64), dtype=np.uint16)
+    img[0, 0] = top
+    path = tmp_path / f"b{bits}.png"
+    assert cv2.imwrite(str(path), img)
+    assert sensor_bits(top) == bits
+    assert [sensor_bits(v) for v in (0, 255, 256, 1023, 1024, 4095, 4096, 16384, 65535)] == \
+        [8, 8, 10, 10, 12, 12, 14, 16, 16]
+    for grey in (True, False):
+        out = read_image(path, grayscale=grey)
+        assert out.dtype == np.uint8 and out.shape[:2] == (48, 64)
+        plane = out if out.ndim == 2 else out[..., 0]
+        np.testing.assert_array_equal(plane, (img >> (bits - 8)).astype(np.uint8))
+        assert len(np.unique(plane)) == 256
+    eight = tmp_path / "eight.png"
+    cv2.imwrite(str(eight), (img >> (bits - 8)).astype(np.uint8))
+    np.testing.assert_array_equal(read_image(eight, grayscale=True), (img >> (bits - 8)).astype(np.uint8))

@@ -28,6 +28,8 @@ def read_image(path: str | Path, grayscale: bool = False) -> NDArray[np.uint8]:
     Returns
     -------
     (H, W) uint8 for grey images or ``grayscale=True``; (H, W, 3) uint8 BGR otherwise.
+    16-bit files keep the 8 highest bits their data uses (:func:`sensor_bits`: 12-bit
+    camera data is shifted by 4, not 8).
 
     Raises
     ------
@@ -42,14 +44,28 @@ def read_image(path: str | Path, grayscale: bool = False) -> NDArray[np.uint8]:
     size = header_size(path)
     if size is not None:
         check_image_size(size[0], size[1], str(path))
-    flags = cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_ANYCOLOR
+    flags = (cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_ANYCOLOR) | cv2.IMREAD_ANYDEPTH
     img = cv2.imread(str(path), flags)
     if img is None or img.size == 0:
         raise ImageError(f"{path}: cannot decode image (corrupt or unsupported format)")
     check_image_size(img.shape[1], img.shape[0], str(path))  # formats without a parsed header
-    if img.dtype != np.uint8:
+    if img.dtype == np.uint16:
+        img = (img >> (sensor_bits(int(img.max())) - 8)).astype(np.uint8)
+    elif img.dtype != np.uint8:
         img = cv2.convertScaleAbs(img, alpha=255.0 / max(float(img.max()), 1.0))
     return img
+
+
+SENSOR_BITS = (8, 10, 12, 14, 16)
+"""Bit depths of camera data stored in 16-bit files."""
+
+
+def sensor_bits(top: int) -> int:
+    """The bit depth of 16-bit image data whose largest value is ``top``: the smallest of
+    :data:`SENSOR_BITS` that holds it. A 12-bit camera's frames (largest values 1024-4095)
+    keep their 8 highest bits (``>> 4``); OpenCV's own 16-to-8-bit conversion (``>> 8``)
+    would leave them 16 grey levels."""
+    return next((b for b in SENSOR_BITS if top < (1 << b)), 16)
 
 
 def image_size(path: str | Path) -> tuple[int, int]:
