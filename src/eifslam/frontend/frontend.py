@@ -21,7 +21,7 @@ from ..geometry.camera import PinholeCamera
 from ..errors import EstimatorError
 from .config import FrontEndConfig
 from .features import AheadMatch, Features, detect_features, make_detector
-from .matching import DescriptorIndex, DescriptorMatcher, essential_ransac, homography_inliers
+from .matching import DescriptorIndex, DescriptorMatcher, essential_ransac, homography_ransac
 from .reassociation import TrackReassociation
 from .relative_pose import estimate_relative_pose
 from .results import FrameFeatures, FrameResult, Reason, RelativePoseResult
@@ -378,8 +378,8 @@ class FrontEnd(FrontEndState, TrackReassociation):
         E, inl = essential_ransac(uv_old, uv_new, self.camera.K, c.ransac_threshold_px, c.ransac_confidence,
                                   c.ransac_method)
         if E is None:  # no parallax (e.g. the same view twice): degenerate for E, not for H
-            inl = homography_inliers(uv_old, uv_new, 2.0 * c.ransac_threshold_px, c.ransac_confidence,
-                                     c.ransac_method)
+            inl = homography_ransac(uv_old, uv_new, 2.0 * c.ransac_threshold_px, c.ransac_confidence,
+                                    c.ransac_method)[1]
         return inl
 
     def _extend_tracks(self, feats: Features, ids: IntArray, p: int, index: DescriptorIndex,

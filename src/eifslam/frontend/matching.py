@@ -15,7 +15,7 @@ from .config import BINARY_INDEXES
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["DescriptorIndex", "DescriptorMatcher", "essential_ransac", "homography_inliers"]
+__all__ = ["DescriptorIndex", "DescriptorMatcher", "essential_ransac", "homography_ransac"]
 
 #: FLANN LSH index of binary descriptors (the parameters OpenCV's documentation suggests).
 LSH_PARAMS = {"algorithm": 6, "table_number": 6, "key_size": 12, "multi_probe_level": 1}
@@ -269,16 +269,18 @@ def essential_ransac(
     return np.asarray(E[:3], np.float64), mask.reshape(-1).astype(bool)
 
 
-def homography_inliers(uv1: Array, uv2: Array, threshold_px: float, confidence: float,
-                       method: str = "usac") -> NDArray[np.bool_]:
-    """Inliers of a homography in RANSAC (OpenCV) between undistorted pixels: the check of
-    descriptor matches where the epipolar one cannot be made.
+def homography_ransac(uv1: Array, uv2: Array, threshold_px: float, confidence: float = 0.995,
+                      method: str = "usac") -> tuple[Array | None, NDArray[np.bool_]]:
+    """Homography in RANSAC (OpenCV) between undistorted pixels, ``uv2 ~ H uv1``.
 
-    Without parallax (a camera standing still, or only rotating) every essential matrix
-    ``[t]x R`` with the right ``R`` fits every correspondence whatever ``t``: five-point
-    samples are degenerate and :func:`essential_ransac` may find no model at all (an
-    identical frame twice). The image motion is then a homography (``K R K^-1``), which
-    still tells right matches from wrong ones.
+    Two uses: the decompositions of a dominant plane's homography are relative-pose
+    hypotheses (:func:`~eifslam.frontend.relative_pose.best_supported_pose`), and its
+    inliers check descriptor matches where the epipolar check cannot be made. Without
+    parallax (a camera standing still, or only rotating) every essential matrix ``[t]x R``
+    with the right ``R`` fits every correspondence whatever ``t``: five-point samples are
+    degenerate and :func:`essential_ransac` may find no model at all (an identical frame
+    twice). The image motion is then a homography (``K R K^-1``), which still tells right
+    matches from wrong ones.
 
     Parameters
     ----------
@@ -286,22 +288,23 @@ def homography_inliers(uv1: Array, uv2: Array, threshold_px: float, confidence: 
     threshold_px : float
         Transfer-error threshold, pixels.
     confidence : float
+        (OpenCV's default 0.995.)
     method : {"usac", "magsac", "ransac"}
 
     Returns
     -------
-    (N,) bool
-        All False when no homography was found (fewer than 4 points, or OpenCV failed).
+    H : (3, 3) or None when no homography was found (fewer than 4 points, or OpenCV failed).
+    inliers : (N,) bool, all False without ``H``.
     """
     n = len(uv1)
     none = np.zeros(n, bool)
     if n < 4:
-        return none
+        return None, none
     try:
         H, mask = cv2.findHomography(np.ascontiguousarray(uv1, np.float64), np.ascontiguousarray(uv2, np.float64),
                                      _METHODS[method], float(threshold_px), confidence=float(confidence))
     except cv2.error:
-        return none
+        return None, none
     if H is None or mask is None or not np.all(np.isfinite(H)):
-        return none
-    return mask.reshape(-1).astype(bool)
+        return None, none
+    return np.asarray(H, np.float64), mask.reshape(-1).astype(bool)

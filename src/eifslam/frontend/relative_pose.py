@@ -21,7 +21,7 @@ from ..geometry.camera import PinholeCamera
 from ..geometry.rotations import rotmat_to_quat
 from ..estimation.measurements import RelativePose
 from .config import FrontEndConfig
-from .matching import essential_ransac
+from .matching import essential_ransac, homography_ransac
 from .results import Reason, RelativePoseResult
 from .twoview import (
     cheirality_mask,
@@ -118,12 +118,8 @@ def _homography_poses(ui: Array, uj: Array, K: Array, threshold_px: float, n_inl
     degenerate and RANSAC can stop at the plane's twin pose, which explains the plane and
     not the points off it; the homography's decompositions are then the other hypotheses
     worth scoring."""
-    try:
-        H, mask = cv2.findHomography(np.ascontiguousarray(ui, np.float64), np.ascontiguousarray(uj, np.float64),
-                                     cv2.USAC_DEFAULT, 2.0 * threshold_px)
-    except cv2.error:
-        return []
-    if H is None or mask is None or not np.all(np.isfinite(H)) or 2 * int(mask.sum()) < n_inliers:
+    H, mask = homography_ransac(ui, uj, 2.0 * threshold_px)
+    if H is None or 2 * int(mask.sum()) < n_inliers:
         return []
     out = []
     for R_cv, t_cv in zip(*cv2.decomposeHomographyMat(H, np.asarray(K, np.float64))[1:3]):
