@@ -127,7 +127,7 @@ def _laps(second: int):
     scene = make_scene(n_frames=54, width=320, height=240)
     idx = list(range(0, 54, 3)) + list(range(0, second, 3))
     cfg = SlamConfig.from_dict({"system": {"reobserve_radius_px": 0.0, "mode": "filter", "loop_closure": True,
-                                           "loop_train_frames": 12}})
+                                           "loop_train_frames": 12, "loop_learn_lag": 5}})
     slam = Slam(scene.camera, cfg)
     for n, k in enumerate(idx):
         slam.track(render_frame(scene, k), float(n))

@@ -54,8 +54,12 @@ def test_feature_lookups_agree_with_the_layout_dicts(far):
         expect = np.array([lay.has_feature(int(a)) for a in ask])
         np.testing.assert_array_equal(lay.has_features(ask), expect)
         np.testing.assert_array_equal(lay.has_features(ask.tolist()), expect)
+        big = np.tile(ask, 20)  # enough ids for the sorted lookup when the ids are sparse
+        np.testing.assert_array_equal(lay.has_features(big), np.tile(expect, 20))
         known = ask[expect]
         np.testing.assert_array_equal(lay.feature_offsets(known), [lay.feature_offset(int(a)) for a in known])
+        np.testing.assert_array_equal(lay.feature_offsets(np.tile(known, 40)),
+                                      [lay.feature_offset(int(a)) for a in np.tile(known, 40)])
     assert lay.feature_ids == ids and lay.pose_ids == [n for n in range(len(ids)) if n % 3 == 0]
     missing = next(a for a in range(-3, 45) if not lay.has_feature(a))
     with pytest.raises(EstimatorError, match=f"feature {missing} is not in the state"):

@@ -26,6 +26,9 @@ IntArray = NDArray[np.int64]
 
 POSE_DIM = 7
 FEATURE_DIM = 3
+_SORTED_MIN = 512
+"""Sparse track ids: from this many ids a query sorts the features once (binary search);
+fewer are looked up in the dict one by one."""
 
 
 class StateKind(Choice):
@@ -101,6 +104,7 @@ class StateLayout:
                 lut[track_id] = off
             else:
                 self._lut = None  # rebuilt (or given up) at the next vectorised query
+        self._sorted = None
         return off
 
     # -- queries --------------------------------------------------------------------
@@ -121,15 +125,34 @@ class StateLayout:
 
     def _lookup(self, ids: NDArray) -> IntArray | None:
         """Feature offsets ``(N,)`` of track ids ``ids (N,)``, ``-1`` where an id is not a
-        feature; None when :meth:`_feature_lut` cannot serve them (use the dict)."""
+        feature; None when neither :meth:`_feature_lut` nor :meth:`_feature_sorted` serves
+        them (a few ids, or ids that are not integers: use the dict)."""
         lut = self._feature_lut(ids)
         if lut is None:
-            return None
+            if len(ids) < _SORTED_MIN or not np.issubdtype(ids.dtype, np.integer):
+                return None
+            keys, offs = self._feature_sorted()
+            if not len(keys):
+                return np.full(len(ids), -1, np.int64)
+            pos = np.minimum(np.searchsorted(keys, ids), len(keys) - 1)
+            return np.where(keys[pos] == ids, offs[pos], -1)
         ids = ids.astype(np.int64, copy=False)
         inside = (ids >= 0) & (ids < len(lut))
         off = np.full(len(ids), -1, np.int64)
         off[inside] = lut[ids[inside]]
         return off
+
+    def _feature_sorted(self) -> tuple[IntArray, IntArray]:
+        """Track ids of the features, sorted, and their offsets: the lookup for ids too
+        sparse for :meth:`_feature_lut` (binary search; rebuilt after features are added,
+        ``O(F log F)``, so only for queries of many ids)."""
+        cached = self.__dict__.get("_sorted")
+        if cached is None:
+            keys = np.fromiter(self._feature.keys(), np.int64, count=len(self._feature))
+            offs = np.fromiter(self._feature.values(), np.int64, count=len(self._feature))
+            order = np.argsort(keys, kind="stable")
+            cached = self._sorted = (keys[order], offs[order])
+        return cached
 
     def _feature_lut(self, ids: NDArray) -> IntArray | None:
         """Feature offset by track id (``-1``: none), for vectorised queries of the integer

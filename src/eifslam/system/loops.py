@@ -128,7 +128,8 @@ class LoopCloser:
         sysc = config.system
         self.enabled = bool(sysc.loop_closure) and callable(getattr(frontend, "descriptors", None))
         seed = config.frontend.seed if config.frontend.seed is not None else 0
-        self.index = PlaceIndex(sysc.loop_words, sysc.loop_train_frames, seed=int(seed))
+        self.index = PlaceIndex(sysc.loop_words, sysc.loop_train_frames, seed=int(seed),
+                               learn_lag=sysc.loop_learn_lag)
         self.closures: list[LoopClosure] = []
         self.rejected: list[tuple[int, int, str]] = []  # (frame, candidate, why) verifications that failed
         self._streak: list[tuple[int, int, int]] = []  # (lo, hi, count) places of the last query
