@@ -164,7 +164,7 @@ def test_report_lists_loops_and_the_option_turns_loop_closure_off(tmp_path):
     from test_slam import _tiny_folder
 
     d = _tiny_folder(tmp_path, 3)
-    for flag, on in (([], False), (["--loop-closure"], True), (["--no-loop-closure"], False)):
+    for flag, on in (([], True), (["--loop-closure"], True), (["--no-loop-closure"], False)):
         out = tmp_path / f"out{len(flag)}{on}"
         assert cli_main(["run", str(d), "--out", str(out), "--no-html", "-q", *flag]) == 0
         rep = json.loads((out / "report.json").read_text())

@@ -262,7 +262,7 @@ class SystemConfig:
     keyframe_min_tracked: float = 0.5
     keyframe_max_interval_s: float = 1.0
     map_pose_uncertainty: bool = True
-    loop_closure: bool = False
+    loop_closure: bool = True
     loop_words: int = 256
     loop_train_frames: int = 20
     loop_learn_lag: int = 20
