@@ -75,23 +75,28 @@ def test_passes_stop_when_damped_steps_only_crawl(monkeypatch):
     from eifslam.estimation import smoothing as sm
 
     def run(costs_by_lam: dict[float, list[float]], max_passes: int = 5) -> sm.SmoothingReport:
-        calls = {"cost": 0}
         seq = {lam: list(v) for lam, v in costs_by_lam.items()}
-        filt = SimpleNamespace(x=np.zeros(3), dim=3, priors=SimpleNamespace(scale=None), current_lam=0.0)
-        costs = iter([100.0])
+        filt = SimpleNamespace(x=np.zeros(3), dim=3, priors=SimpleNamespace(scale=None), current_lam=0.0,
+                               at=100.0, relinearised=False)
 
-        def cost(f, *a, **k):
-            calls["cost"] += 1
-            if calls["cost"] == 1:
-                return next(costs)
-            return seq[f.current_lam].pop(0)
+        def cost(f, *a, **k):  # the model cost: at the linearisation point, or after a step
+            if f.relinearised:
+                f.relinearised = False
+                return f.at
+            f.at = seq[f.current_lam].pop(0)
+            return f.at
+
+        def relin(f):
+            f.relinearised = True
+            return None
 
         def solve(f, x0, lam):
             f.current_lam = lam
             return x0 + 1.0
 
-        monkeypatch.setattr(sm, "measurement_cost", cost)
-        monkeypatch.setattr(sm, "relinearise", lambda f: None)
+        monkeypatch.setattr(sm, "model_cost", cost)
+        monkeypatch.setattr(sm, "measurement_cost", lambda f, *a, **k: 0.0)
+        monkeypatch.setattr(sm, "relinearise", relin)
         monkeypatch.setattr(sm, "_damped_solve", solve)
         rep = sm.SmoothingReport()
         sm._passes(filt, max_passes, 1e-12, rep)

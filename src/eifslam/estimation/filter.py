@@ -170,13 +170,22 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         """Weak prior ``X ~ N(X0, weak_prior_sigma^2 I)`` on state entries ``cols`` (N, k)."""
         self._fuse(factors.weak_prior(cols, X, self.x, self.config.weak_prior_sigma))
 
-    def refuse_weak_priors(self) -> None:
-        """Fuse every weak prior again (smoothing starts from zero information)."""
-        for kind, columns in ((StateKind.POSE, self.layout.pose_columns),
-                              (StateKind.FEATURE, self.layout.feature_columns)):
+    def prior_terms(self) -> list[Linearised]:
+        """What :meth:`relinearise` fuses besides the stored measurements, linearised at ``x``:
+        the gauge and scale priors, every weak prior and the ``|q|^2 = 1``
+        pseudo-measurements (their ``innov`` also gives their part of the cost)."""
+        x, lay, cfg = self.x, self.layout, self.config
+        terms = [factors.pose_prior(lay, x, fid, p, q, cfg.prior_sigma) for fid, (p, q) in self.priors.pose.items()]
+        if self.priors.scale is not None:
+            terms.append(factors.scale_prior(lay, x, *self.priors.scale, cfg.scale_prior_sigma))
+        for kind, columns in ((StateKind.POSE, lay.pose_columns), (StateKind.FEATURE, lay.feature_columns)):
             keys = [i for (kd, i) in self.priors.weak if kd == kind]
             if keys:
-                self._fuse_weak(columns(keys), np.stack([self.priors.weak[(kind, i)] for i in keys]))
+                X = np.stack([self.priors.weak[(kind, i)] for i in keys])
+                terms.append(factors.weak_prior(columns(keys), X, x, cfg.weak_prior_sigma))
+        if lay.pose_ids:
+            terms.append(factors.quat_norm(lay, x, np.array(lay.pose_ids), cfg.quat_norm_sigma))
+        return terms
 
     def pose(self, frame_id: int) -> tuple[Array, Array]:
         """Estimated ``(p (3,), q_wc (4,) unit)`` of a pose."""
@@ -212,9 +221,6 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
 
     def _fuse_scale(self, fa: int, fb: int, d: float) -> None:
         self._fuse(factors.scale_prior(self.layout, self.x, fa, fb, d, self.config.scale_prior_sigma))
-
-    def _fuse_quat_norm(self, fids) -> None:
-        self._fuse(factors.quat_norm(self.layout, self.x, fids, self.config.quat_norm_sigma))
 
     # -- fusion (paper eq. 8) -----------------------------------------------------------
     def _fuse(self, lin: Linearised) -> None:
@@ -332,36 +338,41 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         (e.g. through ``info.set``) or the caller wants covariances refactorised."""
         self._factor = None
 
-    def relinearise(self) -> None:
+    def relinearise(self) -> NDArray[np.bool_]:
         """Rebuild ``I`` and ``i`` from zero at the current ``x``: the gauge and scale
-        priors, the weak priors, the quaternion-norm pseudo-measurements and every stored
-        measurement (smoothing, paper III-E). Stored ``Zm`` are not gated again: the set
-        the filter accepted is a fixed problem, except that a feature whose usable views
-        no longer constrain it (fewer than two in front of their cameras, or a singular
-        block: :func:`~eifslam.estimation.factors.constrained_features`) keeps its weak
-        prior only. The current ``x`` becomes every state's
-        first estimate."""
+        priors, the weak priors, the quaternion-norm pseudo-measurements
+        (:meth:`prior_terms`) and every stored measurement (smoothing, paper III-E). Stored
+        ``Zm`` are not gated again: the set the filter accepted is a fixed problem, except
+        that a ``Zm`` behind its camera, and those of a feature whose usable views no longer
+        constrain it (fewer than two in front of their cameras, or a singular block:
+        :func:`~eifslam.estimation.factors.constrained_features`), are left out (the
+        feature keeps its weak prior only). The current ``x`` becomes every state's first
+        estimate.
+
+        Returns
+        -------
+        (N,) bool
+            Which ``Zm`` of ``store.all_features()`` were fused: with the stored
+            ``ZR``/``ZT`` and :meth:`prior_terms`, the terms of the cost the new
+            information's solution minimises to first order.
+        """
         self.first_estimates[:] = self.x
         self.info.reset()
         self._factor = None
         with self.incremental.not_measuring() if self.incremental is not None else nullcontext():
-            self._refuse_all()
+            return self._refuse_all()
 
-    def _refuse_all(self) -> None:
-        for fid, (p, q) in self.priors.pose.items():
-            self._fuse_pose_prior(fid, p, q)
-        if self.priors.scale is not None:
-            self._fuse_scale(*self.priors.scale)
-        self.refuse_weak_priors()
-        pids = self.layout.pose_ids
-        if pids:
-            self._fuse_quat_norm(np.array(pids))
+    def _refuse_all(self) -> NDArray[np.bool_]:
+        for lin in self.prior_terms():
+            self._fuse(lin)
         obs = self.store.all_features()
+        ok = np.zeros(len(obs), bool)
         if len(obs):  # a feature whose views no longer constrain it keeps its weak prior only
             ok, idx, J, W, innov, _ = self.linearise_features(obs, gate=False)
             ok = factors.constrained_features(obs.feature, ok, J[:, :, 7:], W, self.config.weak_prior_sigma**-2)
             self._fuse(Linearised(idx[ok], J[ok], W[ok], innov[ok]))
         self.fuse_relative(self.store.relative, store=False)
+        return ok
 
     def recover(self) -> Array:
         """Solve ``I x = i`` and make the result the new linearisation point."""
