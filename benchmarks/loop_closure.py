@@ -17,7 +17,10 @@ ground-truth poses, the point at the scene depth ``D`` on each camera's optical 
 projects inside the other camera's image, in front of it (mutual frustum overlap at the
 depth the camera looks at). ``D`` is the median depth of the map features frame *k* sees
 in the run's own estimate, converted to ground-truth units by the scale of the Sim(3)
-alignment that ATE uses (so no per-data-set constant enters the score).
+alignment that ATE uses (so no per-data-set constant enters the score). Each loop also
+gets ``view_overlap``: the smaller of the two shares of one camera's view (a grid of its
+pixels at depth ``D``) that the other camera sees (not part of the score; for reading
+loops on the edge of it).
 
 Writes ``OUT/<dataset>-<lc|nolc>/`` (the run's outputs), ``OUT/loop_closure.json`` (one
 row per data set: loops, false loops, every loop with its score, ATE and fps with and
@@ -68,6 +71,18 @@ def same_place(camera, pose_k, pose_j, depth: float) -> bool:
     return sees(camera, pj, Rj, pk + depth * Rk[:, 2]) and sees(camera, pk, Rk, pj + depth * Rj[:, 2])
 
 
+def view_overlap(camera, pose_k, pose_j, depth: float, n: int = 16) -> float:
+    """The smaller of the two shares of one camera's view (an ``n x n`` grid of its pixels,
+    back-projected to ``depth``) that the other camera sees: how much of the place the two
+    frames share, reported beside ``same_place`` (which asks only for each view's centre)."""
+    def share(a, b):
+        (pa, Ra), (pb, Rb) = a, b
+        u, v = np.meshgrid(np.linspace(0, camera.width - 1, n), np.linspace(0, camera.height - 1, n))
+        rays = np.stack([(u.ravel() - camera.cx) / camera.fx, (v.ravel() - camera.cy) / camera.fy, np.ones(n * n)], 1)
+        return float(np.mean([sees(camera, pb, Rb, pa + Ra @ (depth * r)) for r in rays]))
+    return min(share(pose_k, pose_j), share(pose_j, pose_k))
+
+
 def median_depth(slam, frame_id: int) -> float | None:
     """Median depth of the estimated map features frame ``frame_id`` sees in its image."""
     ids, X, _ = slam.map()
@@ -97,6 +112,7 @@ def score_loops(slam, seq, gt, scale: float | None) -> list[dict[str, Any]]:
             row["gt_distance"] = float(np.linalg.norm(pk[0] - pj[0]))
             row["gt_angle_deg"] = float(np.degrees(np.arccos(np.clip(pk[1][:, 2] @ pj[1][:, 2], -1, 1))))
             row["depth_gt_units"] = d * scale
+            row["view_overlap"] = view_overlap(seq.camera, pk, pj, d * scale)
         row["true"] = ok
         rows.append(row)
     return rows

@@ -338,3 +338,24 @@ def test_dark_ring_writes_its_rings_and_figures(tmp_path, capsys):
     assert all(r["views"] == 4 and 50 < r["level_min"] <= r["level_max"] < 90 for r in rows)
     assert len(list((tmp_path / "rings" / "x0.3" / "images").iterdir())) == 4
     assert "| 0.3 | sift |" in capsys.readouterr().out
+
+
+def test_loop_scoring_view_overlap_and_same_place():
+    """``view_overlap`` (the smaller share of one view the other camera sees) is 1 for one
+    camera, 0 for two looking apart and about a half for a sideways shift of half the
+    view's width at the depth; ``same_place`` asks each view's centre to be seen."""
+    lc = _load("loop_closure")
+    from eifslam.geometry.camera import PinholeCamera
+
+    cam = PinholeCamera(fx=320.0, fy=320.0, cx=319.5, cy=239.5, width=640, height=480)
+    eye = np.eye(3)
+    here = (np.zeros(3), eye)
+    depth = 2.0
+    width_at_depth = depth * cam.width / cam.fx  # 4 m
+    assert lc.view_overlap(cam, here, here, depth) == 1.0 and lc.same_place(cam, here, here, depth)
+    away = (np.zeros(3), np.diag([-1.0, 1.0, -1.0]))  # looking the other way
+    assert lc.view_overlap(cam, here, away, depth) == 0.0 and not lc.same_place(cam, here, away, depth)
+    half = (np.array([0.5 * width_at_depth, 0.0, 0.0]), eye)
+    assert 0.4 <= lc.view_overlap(cam, here, half, depth) <= 0.6
+    far = (np.array([0.8 * width_at_depth, 0.0, 0.0]), eye)  # centres outside each other's image
+    assert not lc.same_place(cam, here, far, depth) and 0.1 <= lc.view_overlap(cam, here, far, depth) <= 0.3
