@@ -370,7 +370,9 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         if len(obs):  # a feature whose views no longer constrain it keeps its weak prior only
             ok, idx, J, W, innov, _ = self.linearise_features(obs, gate=False)
             ok = factors.constrained_features(obs.feature, ok, J[:, :, 7:], W, self.config.weak_prior_sigma**-2)
-            self._fuse(Linearised(idx[ok], J[ok], W[ok], innov[ok]))
+            lin = Linearised(idx[ok], J[ok], W[ok], innov[ok])
+            self.info.add_split(lin.idx, *lin.information(self.x), POSE_DIM)  # [pose 7, feature 3]
+            self._factor = None
         self.fuse_relative(self.store.relative, store=False)
         return ok
 

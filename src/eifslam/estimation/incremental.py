@@ -97,6 +97,12 @@ class TrackedInformationStore(InformationStore):
             for lis in self.listeners:
                 lis.on_add(idx, Lam, eta)
 
+    def add_split(self, idx: IntArray, Lam: Array, eta: Array, split: int) -> None:
+        super().add_split(idx, Lam, eta, split)
+        if len(idx):
+            for lis in self.listeners:
+                lis.on_add(idx, Lam, eta)
+
     def reset(self) -> None:
         super().reset()
         for lis in self.listeners:
