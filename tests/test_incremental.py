@@ -437,3 +437,32 @@ def test_states_measured_while_the_window_is_invalid_stay_in_its_rebuild():
     assert st.rebuilds == rebuilds and st.fallbacks == 0
     f.complete_estimate()
     assert rel_err(f.x, full_solve(f)) < 1e-8
+
+
+def test_add_split_sums_to_what_add_gives():
+    """``add_split`` (the relinearised ``Zm``: pose-pose and feature-feature sub-blocks
+    summed per pose and per feature before they become triplets) gives the ``I`` and ``i``
+    that ``add`` gives block by block, with fewer triplets, and reports the blocks to the
+    listeners as ``add`` does."""
+    from eifslam.estimation.incremental import TrackedInformationStore
+    from eifslam.estimation.information import InformationStore
+
+    rng = np.random.default_rng(3)
+    n_obs, dim = 3000, 7 * 40 + 3 * 400
+    pose = rng.integers(0, 40, n_obs) * 7
+    feat = 7 * 40 + rng.integers(0, 400, n_obs) * 3
+    idx = np.concatenate([pose[:, None] + np.arange(7), feat[:, None] + np.arange(3)], 1)
+    A = rng.normal(size=(n_obs, 10, 2))
+    Lam, eta = A @ np.swapaxes(A, 1, 2), rng.normal(size=(n_obs, 10))
+    ref, new = InformationStore(), TrackedInformationStore()
+    ref.grow(dim)
+    new.grow(dim)
+    seen = []
+    new.listeners.append(type("L", (), {"on_add": lambda self, *a: seen.append(a), "on_invalidate": lambda self: None})())
+    ref.add(idx, Lam, eta)
+    new.add_split(idx, Lam, eta, 7)
+    assert len(new.pending_triplets()[0]) < 0.5 * len(ref.pending_triplets()[0])
+    D = (ref.matrix() - new.matrix()).toarray()
+    assert np.abs(D).max() <= 1e-12 * abs(ref.matrix()).max()
+    np.testing.assert_allclose(new.vector, ref.vector, rtol=0, atol=1e-12 * np.abs(ref.vector).max())
+    assert len(seen) == 1 and seen[0][0] is idx
