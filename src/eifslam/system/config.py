@@ -131,7 +131,8 @@ class SystemConfig:
         baseline"); every other frame is localised on the map, pose only, with its
         covariance given the map, and carried with its reference keyframe afterwards
         (:mod:`eifslam.system.keyframes`). True (default); False: every frame is a keyframe
-        (Algorithm 1 on every image). Measured at the default parallax, seed 0, SIFT
+        (Algorithm 1 on every image). Measured when keyframes were introduced (issue 12;
+        current figures: docs/results.md), at the default parallax, seed 0, SIFT
         (docs/realtime.md): 7scenes-redkitchen-a 185 keyframes of 500, filter ATE 0.042 m
         and smooth 0.040 m against 0.054 m and 0.052 m with every frame in the filter;
         kitti-07 filter 0.293 m against 0.300 m; kitti-seq1 0.0302 m / 0.0172 m both ways;
