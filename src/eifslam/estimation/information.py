@@ -95,6 +95,7 @@ class InformationStore:
             G = sp.csr_matrix((np.ones(len(idx)), (inv, np.arange(len(idx)))), shape=(len(first), len(idx)))
             block = idx[np.unique(inv, return_index=True)[1], part]  # one row of indices per distinct part
             n = part.stop - part.start
+            # the base class's add: a tracking subclass reports the blocks as given, once
             InformationStore.add(self, block, (G @ Lam[:, part, part].reshape(len(idx), n * n)).reshape(-1, n, n),
                                  G @ eta[:, part])
         a, b = idx[:, :split], idx[:, split:]

@@ -71,6 +71,12 @@ def relinearise(filt: InformationFilter) -> np.ndarray:
     return filt.relinearise()
 
 
+def _relative_chi2(filt: InformationFilter, rel: list[RelativePose]) -> np.ndarray:
+    """Normalised innovation squared ``(N,)`` of each ``ZR``/``ZT`` pair (5 DOF) at ``x``."""
+    _, _, W, innov = filt.linearise_relative(rel)
+    return np.einsum("ni,nij,nj->n", innov, W, innov)
+
+
 def model_cost(filt: InformationFilter, fused: np.ndarray) -> float:
     """The cost a relinearised information minimises, at ``x``: the squared normalised
     residuals of the ``Zm`` it fused (``fused``, from :func:`relinearise`; one that has
@@ -90,8 +96,7 @@ def model_cost(filt: InformationFilter, fused: np.ndarray) -> float:
         chi2 = filt.linearise_features(obs.subset(fused), gate=False)[5]
         total += float(np.sum(np.where(np.isfinite(chi2), chi2, 1e6)))
     if filt.store.relative:
-        _, _, W, innov = filt.linearise_relative(filt.store.relative)
-        total += float(np.einsum("ni,nij,nj->", innov, W, innov))
+        total += float(np.sum(_relative_chi2(filt, filt.store.relative)))
     for lin in filt.prior_terms():
         total += float(np.einsum("ni,nij,nj->", lin.innov, lin.W, lin.innov))
     return total
@@ -122,8 +127,7 @@ def measurement_cost(filt: InformationFilter, feature_chi2: float | None = None,
         chi2 = np.where(np.isfinite(chi2), chi2, 1e6)
         total += float(np.sum(chi2 if feature_chi2 is None else np.minimum(chi2, feature_chi2)))
     if rel:
-        _, _, W, innov = filt.linearise_relative(rel)
-        chi2 = np.einsum("ni,nij,nj->n", innov, W, innov)
+        chi2 = _relative_chi2(filt, rel)
         total += float(np.sum(chi2 if relative_chi2 is None else np.minimum(chi2, relative_chi2)))
     return total
 
@@ -182,8 +186,7 @@ def reject_outliers(filt: InformationFilter, feature_chi2: float | None, relativ
     obs = filt.store.all_features()
     if relative_chi2 is not None and filt.store.relative:
         rel = filt.store.relative
-        _, _, W, innov = filt.linearise_relative(rel)
-        chi2 = np.einsum("ni,nij,nj->n", innov, W, innov)
+        chi2 = _relative_chi2(filt, rel)
         ids, counts = np.unique(obs.pose, return_counts=True)
         zm = dict(zip(ids.tolist(), counts.tolist()))
         placed = np.array([zm.get(r.i, 0) >= min_pose_features and zm.get(r.j, 0) >= min_pose_features for r in rel])
