@@ -10,7 +10,9 @@ from eifslam.estimation import factors
 from eifslam.estimation.filter import InformationFilter
 from eifslam.estimation.initialisation import refine_points, triangulate
 from eifslam.estimation.measurements import FeatureObservations
-from eifslam.estimation.options import FilterConfig
+from eifslam.errors import ConfigError
+from eifslam.estimation.measurements import RelativePose
+from eifslam.estimation.options import FilterConfig, FirstEstimates
 from eifslam.estimation.scale import rescale
 from eifslam.geometry.rotations import quat_exp, quat_to_rotmat
 from eifslam.sim.synthetic import corridor_scene
@@ -27,23 +29,54 @@ def _two_poses_one_point(first: bool) -> tuple[InformationFilter, np.ndarray]:
     return f, X
 
 
-@pytest.mark.parametrize("first", [True, False])
+@pytest.mark.parametrize("first", [True, False, "off", "features", "all"])
 def test_zm_jacobian_at_first_estimates_innovation_at_current(first):
     f, X = _two_poses_one_point(first)
+    mode = FirstEstimates.parse(first, "first")
     fe = f.first_estimates.copy()
     np.testing.assert_array_equal(fe, f.x)
     # the estimate moves (as a recovery would move it); the first estimates stay
-    f.x[f.layout.feature_columns([7])[0]] += [0.05, -0.03, 0.2]
+    fcols = f.layout.feature_columns([7])[0]
+    f.x[fcols] += [0.05, -0.03, 0.2]
     f.x[f.layout.pose_columns([1])[0][:3]] += [0.01, 0.0, -0.02]
     np.testing.assert_array_equal(f.first_estimates, fe)
     obs = FeatureObservations.make(np.array([1]), np.array([7]), np.array([[300.0, 200.0]]), 1.0)
     ok, idx, J, W, innov, chi2 = f.linearise_features(obs, gate=False)
     at_x = factors.features(f.layout, f.x, f.camera, f.config, obs, False)
     at_fe = factors.features(f.layout, fe, f.camera, f.config, obs, False)
+    mixed = f.x.copy()
+    mixed[fcols] = fe[fcols]  # the feature at its first estimate, the poses where they are
+    at_mixed = factors.features(f.layout, mixed, f.camera, f.config, obs, False)
     np.testing.assert_array_equal(innov, at_x[4])  # innovation always at the current estimate
     np.testing.assert_array_equal(chi2, at_x[5])
-    np.testing.assert_array_equal(J, (at_fe if first else at_x)[2])
-    assert np.abs(at_fe[2] - at_x[2]).max() > 1e-3  # the two points give different Jacobians
+    expected = {FirstEstimates.OFF: at_x, FirstEstimates.FEATURES: at_mixed, FirstEstimates.ALL: at_fe}[mode]
+    np.testing.assert_array_equal(J, expected[2])
+    # the three points give three different Jacobians (so the test can tell them apart)
+    assert np.abs(at_fe[2] - at_x[2]).max() > 1e-3
+    assert np.abs(at_mixed[2] - at_x[2]).max() > 1e-3 and np.abs(at_mixed[2] - at_fe[2]).max() > 1e-3
+
+
+@pytest.mark.parametrize("first", ["off", "features", "all"])
+def test_relative_jacobian_at_the_poses_first_estimates_only_with_all(first):
+    f, _ = _two_poses_one_point(first)
+    fe = f.first_estimates.copy()
+    f.x[f.layout.pose_columns([1])[0][:3]] += [0.03, 0.01, -0.05]
+    rp = RelativePose(0, 1, np.array([1.0, 0.0, 0.0, 0.0]), np.array([0.1, 0.0, 1.0]), np.eye(5) * 1e-4)
+    idx, J, W, innov = f.linearise_relative([rp])
+    at_x = factors.relative(f.layout, f.x, f.config, [rp])
+    at_fe = factors.relative(f.layout, fe, f.config, [rp])
+    np.testing.assert_array_equal(innov, at_x[3])
+    np.testing.assert_array_equal(J, (at_fe if first == "all" else at_x)[1])
+    assert np.abs(at_fe[1] - at_x[1]).max() > 1e-4
+
+
+def test_first_estimates_option_reads_bools_and_names():
+    assert FilterConfig().first_estimate_jacobians == FirstEstimates.OFF
+    assert FilterConfig(first_estimate_jacobians=True).first_estimate_jacobians == FirstEstimates.ALL
+    assert FilterConfig(first_estimate_jacobians=False).first_estimate_jacobians == FirstEstimates.OFF
+    assert FilterConfig(first_estimate_jacobians="features").first_estimate_jacobians == "features"
+    with pytest.raises(ConfigError, match="first_estimate_jacobians"):
+        FilterConfig(first_estimate_jacobians="poses")
 
 
 def test_relinearise_rescale_and_sessions_carry_the_first_estimates():

@@ -32,7 +32,7 @@ from .filter_session import FilterSessionMixin
 from .incremental import IncrementalRecovery, TrackedInformationStore
 from .information import InformationStore
 from .measurements import FeatureObservations, MeasurementStore, PriorStore, RelativePose
-from .options import FilterConfig, Recovery, ZtForm
+from .options import FilterConfig, FirstEstimates, Recovery, ZtForm
 from .recovery import SchurFactor, factorize
 from .relinearisation import OnlineRelinearisation
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout, pose_tangent_covariance, read_features, read_pose, read_poses  # noqa: F401
@@ -248,8 +248,9 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         innovation squared (``inf`` where not finite or behind the camera; with
         ``config.gate_feature_uncertainty``, against ``R + J_f P_f J_f^T``, see
         :meth:`feature_covariances`). With
-        ``config.first_estimate_jacobians``, ``J`` is taken at the first estimates (and
-        a measurement must be usable there too); everything else at ``x``.
+        ``config.first_estimate_jacobians`` ``"features"`` (``"all"``), ``J`` is taken with
+        the features (every state) at their first estimates, and a measurement must be
+        usable there too; everything else at ``x``.
         """
         aware = gate and self.config.gate_chi2 is not None and self.config.gate_feature_uncertainty and len(obs)
         ok, idx, J, W, innov, chi2 = factors.features(self.layout, self.x, self.camera, self.config, obs,
@@ -257,8 +258,13 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         if aware:  # innovation covariance R + Jf P_f Jf^T where the feature's covariance is at hand
             chi2 = factors.feature_innovation_chi2(innov, W, J[:, :, 7:], self.feature_covariances(obs.feature), chi2)
             ok &= chi2 <= self.config.gate_chi2
-        if self.config.first_estimate_jacobians and len(obs):
-            fe = factors.features(self.layout, self.first_estimates, self.camera, self.config, obs, gate=False)
+        mode = self.config.first_estimate_jacobians
+        if mode != FirstEstimates.OFF and len(obs):
+            at = self.first_estimates
+            if mode == FirstEstimates.FEATURES:  # the features' entries only, the poses' at x
+                at, cols = self.x.copy(), idx[:, 7:]
+                at[cols] = self.first_estimates[cols]
+            fe = factors.features(self.layout, at, self.camera, self.config, obs, gate=False)
             ok, J = ok & fe[0], fe[2]
         return ok, idx, J, W, innov, chi2
 
@@ -287,10 +293,10 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         -------
         idx : (N, 14) state indices ``[pose i, pose j]``; J : (N, 5, 14);
         W : (N, 5, 5) information of the joint measurement; innov : (N, 5). ``J`` at the
-        first estimates with ``config.first_estimate_jacobians``.
+        first estimates with ``config.first_estimate_jacobians`` ``"all"``.
         """
         idx, J, W, innov = factors.relative(self.layout, self.x, self.config, rps)
-        if self.config.first_estimate_jacobians:
+        if self.config.first_estimate_jacobians == FirstEstimates.ALL:  # poses' first estimates
             J = factors.relative(self.layout, self.first_estimates, self.config, rps)[1]
         return idx, J, W, innov
 

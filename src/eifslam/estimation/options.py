@@ -1,4 +1,5 @@
-"""Typed options of the estimation layer: :class:`FilterConfig`, :class:`ZtForm`, :class:`Recovery`.
+"""Typed options of the estimation layer: :class:`FilterConfig`, :class:`ZtForm`, :class:`Recovery`,
+:class:`FirstEstimates`.
 
 The enums are ``str``-valued: they accept and compare equal to the plain strings of
 configuration files (``ZtForm("auto") == "auto"``).
@@ -56,6 +57,28 @@ class Recovery(Choice):
     FULL = "full"
 
 
+class FirstEstimates(Choice):
+    """Which states' Jacobians a new measurement takes at their *first* estimates
+    (``FilterConfig.first_estimate_jacobians``).
+
+    ``OFF``: every Jacobian at the current estimate; ``FEATURES``: the map features' at
+    their first estimates (the multi-view point they entered with), the poses' at the
+    current estimate; ``ALL``: every state's at its first estimate.
+    """
+
+    OFF = "off"
+    FEATURES = "features"
+    ALL = "all"
+
+    @classmethod
+    def parse(cls, value: "str | bool | Choice", what: str):
+        """As :meth:`Choice.parse`; ``True`` is ``ALL`` and ``False`` ``OFF`` (the option
+        was a bool before ``FEATURES``)."""
+        if isinstance(value, (bool, np.bool_)):
+            return cls.ALL if value else cls.OFF
+        return super().parse(value, what)
+
+
 @dataclass(frozen=True)
 class FilterConfig:
     """Settings of the information filter.
@@ -97,19 +120,26 @@ class FilterConfig:
         (smoothed ATE, seed 0, SIFT: middlebury-templering 0.00203 -> 0.0036 m,
         strecha-fountain-p11 0.00308 -> 0.00353 m; kitti-seq1 0.0195 -> 0.0177 m and
         strecha-herzjesu-p25 0.00954 -> 0.00858 m improved).
-    first_estimate_jacobians : bool
-        Linearise every new ``Zm`` and ``ZR``/``ZT`` with Jacobians at the *first*
-        estimates of the states it involves (the initial guesses they entered with;
+    first_estimate_jacobians : FirstEstimates or {"off", "features", "all"} or bool
+        Linearise every new ``Zm`` (and, with ``"all"``, ``ZR``/``ZT``) with the Jacobians
+        of some states at their *first* estimates (the value they entered the state with;
         smoothing's relinearisation makes the smoothed estimate the new first one), the
         innovation at the current estimate (first-estimates Jacobians, Huang, Mourikis &
         Roumeliotis 2008). The filter never relinearises what it fused, so Jacobians of
-        one state at different points would give it information in directions the
-        measurements cannot observe (drift of position, orientation and scale) and make
-        it overconfident as a run goes on (``docs/estimator.md``, Consistency). Off by
-        default: it halves the filter's mean NEES on the synthetic corridor (22 -> 10 over
-        50 frames) and improves kitti-seq1's filter ATE (0.031 -> 0.018 m), but on kitti-07
-        the filter then lands near the cost's minimum, whose scale drifts: filter ATE
-        0.244 m off, 0.419 m on (seed 0, SIFT, keyframes on).
+        one state at different points give it information in directions the
+        measurements cannot observe, and it grows overconfident as a run goes on.
+        ``"features"`` takes the map features' Jacobians at their first estimates (the
+        point refined on every view they entered with) and the poses' at the current
+        estimate: a feature is measured from many frames, a pose almost only in the frame
+        it enters, so this is where the inconsistency comes from (synthetic corridor, 50
+        runs x 50 frames, filter's mean NEES 30.8 off, 13.6 ``"features"``; the poses' first
+        estimates, guesses from a relative pose and the last step length, only add
+        linearisation error: middlebury-templering's filter ATE 0.00159 m ``"features"``,
+        0.00202 m ``"all"``). ``True`` is ``"all"`` and ``False`` ``"off"``. Off by default:
+        on kitti-07 the filter then lands at the cost's minimum, whose scale drifts
+        (filter ATE 0.24 m off, 0.42-0.44 m ``"features"``, seeds 0-2), which outweighs
+        middlebury-templering's gain (smoothed ATE 20% lower) when chosen
+        leave-one-set-out (``docs/estimator.md``, Consistency).
     relinearise_threshold : float or None
         Online relinearisation (incremental recovery only,
         :mod:`eifslam.estimation.relinearisation`): before each recovery, a stored ``Zm``
@@ -133,7 +163,7 @@ class FilterConfig:
     min_depth: float = 1e-6
     weak_prior_sigma: float = 1e3
     gate_feature_uncertainty: bool = False
-    first_estimate_jacobians: bool = False
+    first_estimate_jacobians: FirstEstimates = FirstEstimates.OFF
     relinearise_threshold: float | None = None
     relinearise_budget: int = 50
 
@@ -143,6 +173,8 @@ class FilterConfig:
             if not (np.isfinite(v) and v > 0):
                 raise ConfigError(f"filter.{key} must be a positive number, got {v!r}")
         object.__setattr__(self, "zt_form", ZtForm.parse(self.zt_form, "filter.zt_form"))
+        object.__setattr__(self, "first_estimate_jacobians",
+                           FirstEstimates.parse(self.first_estimate_jacobians, "filter.first_estimate_jacobians"))
         if not 0.0 < self.zt_paper_max_angle_deg < 90.0:
             raise ConfigError("filter.zt_paper_max_angle_deg must lie in (0, 90)")
         if self.gate_chi2 is not None and not self.gate_chi2 > 0:
@@ -155,4 +187,4 @@ class FilterConfig:
             raise ConfigError(f"filter.relinearise_budget must be an integer >= 1, got {b!r}")
 
 
-__all__ = ["FilterConfig", "Recovery", "ZtForm"]
+__all__ = ["FilterConfig", "FirstEstimates", "Recovery", "ZtForm"]
