@@ -155,3 +155,14 @@ def test_relative_gate_statistic_adds_the_poses_uncertainty():
     assert relative_gate_statistic(f, rp, None) == pytest.approx(plain, rel=1e-4)
     C = np.diag([1e-4] * 3 + [1e-5] * 3)
     assert relative_gate_statistic(f, rp, C) < 0.9 * plain
+
+
+@pytest.mark.parametrize("text, mode", [("off", "off"), ("false", "off"), ("'off'", "off"), ("true", "all"),
+                                        ("features", "features"), ("all", "all")])
+def test_first_estimates_option_from_a_configuration_file(tmp_path, text, mode):
+    """YAML reads a bare ``off`` as False and ``true`` as True: both still name the mode."""
+    from eifslam.cli.config import read_config
+
+    path = tmp_path / "c.yaml"
+    path.write_text(f"filter:\n  first_estimate_jacobians: {text}\n")
+    assert read_config(path).filter.first_estimate_jacobians == mode
