@@ -119,15 +119,16 @@ def score_loops(slam, seq, gt, scale: float | None) -> list[dict[str, Any]]:
 
 
 def run_one(source: Path, name: str, out_dir: Path, loop: bool, detector: str | None,
-            max_frames: int | None) -> tuple[dict[str, Any], Any, Any]:
-    """One filter-mode run; returns its report, the Slam and the sequence."""
+            max_frames: int | None, base=None) -> tuple[dict[str, Any], Any, Any]:
+    """One filter-mode run (settings: ``base``, a ``SlamConfig``, or the defaults); returns
+    its report, the Slam and the sequence."""
     from eifslam.evaluation.outputs import write_outputs
     from eifslam.io import open_source
     from eifslam.system.config import SlamConfig
     from eifslam.system.runner import run_sequence
 
     fe = {"detector": detector} if detector else {}
-    config = SlamConfig().replace(frontend=fe, system={"mode": "filter", "loop_closure": loop})
+    config = (base or SlamConfig()).replace(frontend=fe, system={"mode": "filter", "loop_closure": loop})
     t0 = time.perf_counter()
     seq = open_source(source)
     run = run_sequence(seq, config, max_frames=max_frames, quiet=True)
@@ -145,7 +146,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--features", default=None, help="detector (default: the configuration's)")
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--no-baseline", action="store_true", help="skip the --no-loop-closure run")
+    ap.add_argument("--config", type=Path, default=None,
+                    help="a configuration file (as for 'eifslam run --config'); mode and loop closure are set here")
     args = ap.parse_args(argv)
+    base = None
+    if args.config is not None:
+        from eifslam.cli.config import read_config
+
+        base = read_config(args.config)
     only = set(split_list(args.only))
     sets = [p for p in discover_datasets(args.data) if not only or p.name in only]
     args.out.mkdir(parents=True, exist_ok=True)
@@ -156,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             log(f"{src.name}: loop closure on")
             rep, slam, (seq, gt) = run_one(src, src.name, args.out / f"{src.name}-lc", True, args.features,
-                                           args.max_frames)
+                                           args.max_frames, base)
             scale = rep.get("evaluation", {}).get("sim3", {}).get("scale") if "evaluation" in rep else None
             loops = score_loops(slam, seq, gt, scale)
             row.update(frames=rep["frames"], frames_tracked=rep["frames_tracked"], fps_lc=rep["fps"],
@@ -167,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
             if not args.no_baseline:
                 log(f"{src.name}: loop closure off")
                 rep0, _, _ = run_one(src, src.name, args.out / f"{src.name}-nolc", False, args.features,
-                                     args.max_frames)
+                                     args.max_frames, base)
                 row.update(fps_nolc=rep0["fps"], ate_nolc=rep0.get("ate_rmse"),
                            frames_tracked_nolc=rep0["frames_tracked"])
                 if row["ate_lc"] and row["ate_nolc"]:
