@@ -1,24 +1,24 @@
-"""The consistency changes: first-estimates Jacobians, the multi-view first estimate of new
-features, and the ZR/ZT gate statistic with the poses' uncertainty."""
+"""The consistency changes: first-estimates Jacobians (off, for the features only, for every
+state), the multi-view first estimate of new features, and the ZR/ZT gate statistic with
+the poses' uncertainty."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from eifslam.errors import ConfigError
 from eifslam.estimation import factors
 from eifslam.estimation.filter import InformationFilter
 from eifslam.estimation.initialisation import refine_points, triangulate
-from eifslam.estimation.measurements import FeatureObservations
-from eifslam.errors import ConfigError
-from eifslam.estimation.measurements import RelativePose
+from eifslam.estimation.measurements import FeatureObservations, RelativePose
 from eifslam.estimation.options import FilterConfig, FirstEstimates
 from eifslam.estimation.scale import rescale
 from eifslam.geometry.rotations import quat_exp, quat_to_rotmat
 from eifslam.sim.synthetic import corridor_scene
 
 
-def _two_poses_one_point(first: bool) -> tuple[InformationFilter, np.ndarray]:
+def _two_poses_one_point(first: bool | str) -> tuple[InformationFilter, np.ndarray]:
     """A filter with poses 0, 1 and feature 7 at their initial guesses (no measurement)."""
     sc = corridor_scene(3, np.random.default_rng(0))
     f = InformationFilter(sc.camera, FilterConfig(first_estimate_jacobians=first), recovery="full")
