@@ -10,7 +10,7 @@ Usage::
 Runs SLAM on every data set folder under ``--data`` (the sub-folders with ``images/``) and
 on the built-in scene of the paper's first experiment (rendered once into
 ``OUT/builtin-scene``; name ``builtin``), for each mode and detector, with the system's
-default configuration otherwise. Each run writes its outputs (no HTML) into
+default configuration otherwise (or ``--config FILE``'s). Each run writes its outputs (no HTML) into
 ``OUT/<dataset>-<mode>-<detector>/``; a failing run is recorded with its error and the
 next one starts. The runs are the tasks of ``eifslam batch`` (``eifslam.evaluation.batch``):
 one after another in this process, or on Dask with ``--workers N`` (a local cluster of
@@ -163,6 +163,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames per run")
     p.add_argument("--docs", type=Path, default=None, help="also write the table with its provenance into this file")
     p.add_argument("--progress", action="store_true", help="show each run's per-frame progress bar")
+    p.add_argument("--config", type=Path, default=None,
+                   help="a configuration file (as for 'eifslam run --config') for every run; mode and "
+                        "detector come from --modes and --detectors")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, default=None,
                        help="run on a local Dask cluster of this many single-threaded processes "
@@ -262,7 +265,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    configs = [SlamConfig().replace(frontend={"detector": det}, system={"mode": mode})
+    base = SlamConfig()
+    if args.config is not None:
+        from eifslam.cli.config import read_config
+        from eifslam.errors import ConfigError
+
+        try:
+            base = read_config(args.config)
+        except ConfigError as exc:
+            log(str(exc))
+            return 2
+    configs = [base.replace(frontend={"detector": det}, system={"mode": mode})
                for mode in args.modes for det in args.detectors]
     rows: list[dict[str, Any]] = []
     scene = None

@@ -186,8 +186,10 @@ def test_run_all_smoke(tmp_path, capsys):
     (data / "empty").mkdir()  # no images/: not a data set
     out = tmp_path / "out"
     docs = tmp_path / "docs" / "results.md"
+    cfg = tmp_path / "c.yaml"  # --config: every run takes these settings (mode and detector from the options)
+    cfg.write_text("system:\n  mode: smooth\nfilter:\n  first_estimate_jacobians: features\n")
     rc = run_all.main(["--data", str(data), "--out", str(out), "--modes", "filter", "--detectors", "sift",
-                       "--only", "tiny", "--docs", str(docs)])
+                       "--only", "tiny", "--docs", str(docs), "--config", str(cfg)])
     rows = json.loads((out / "results.json").read_text())
     assert len(rows) == 1
     row = rows[0]
@@ -196,13 +198,24 @@ def test_run_all_smoke(tmp_path, capsys):
     assert (row["dataset"], row["mode"], row["detector"], row["frames"]) == ("tiny", "filter", "sift", 4)
     assert row["frames_tracked"] >= 3 and row["ate_rmse"] is not None and np.isfinite(row["ate_rmse"])
     assert row["ms_total"] > 0
-    assert (out / "tiny-filter-sift" / "report.json").exists()
+    rep = json.loads((out / "tiny-filter-sift" / "report.json").read_text())
+    assert rep["config"]["filter"]["first_estimate_jacobians"] == "features" and rep["config"]["system"]["mode"] == "filter"
     assert not (out / "tiny-filter-sift" / "report.html").exists()
     table = (out / "results.md").read_text()
     assert "| tiny | filter | sift |" in table
     text = docs.read_text()
     assert "Command: `python" in text and "--only tiny" in text and "| tiny | filter | sift |" in text
     assert "| tiny | filter | sift |" in capsys.readouterr().out
+
+
+def test_run_all_refuses_a_bad_config_file(tmp_path, capsys):
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text("filter:\n  first_estimate_jacobians: poses\n")
+    rc = run_all.main(["--data", str(tmp_path), "--out", str(tmp_path / "out"), "--only", "builtin",
+                       "--config", str(cfg)])
+    assert rc == 2 and not (tmp_path / "out" / "results.json").exists()
+    err = capsys.readouterr().err
+    assert "bad.yaml" in err and "first_estimate_jacobians" in err
 
 
 def test_run_all_records_failures(tmp_path):
