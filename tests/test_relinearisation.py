@@ -36,11 +36,14 @@ def _small_problem(sc, cfg: FilterConfig, x_shift: np.ndarray | None):
     return f
 
 
-def test_relinearised_information_equals_fusing_at_the_new_point():
+@pytest.mark.parametrize("first", ["off", "features", "all"])
+def test_relinearised_information_equals_fusing_at_the_new_point(first):
     """Taking each measurement's old contribution out and putting it back at ``x`` gives
-    exactly the information of fusing the same measurements at ``x`` (dense reference)."""
+    exactly the information of fusing the same measurements at ``x`` (dense reference),
+    with the Jacobians where ``first_estimate_jacobians`` takes them (the states' first
+    estimates are the truth in both filters)."""
     sc = corridor_scene(5, np.random.default_rng(1), points_per_metre=12.0)
-    cfg = FilterConfig(relinearise_threshold=1e-6, relinearise_budget=10_000)
+    cfg = FilterConfig(relinearise_threshold=1e-6, relinearise_budget=10_000, first_estimate_jacobians=first)
     a = _small_problem(sc, cfg, None)
     a.recover_active()  # the window is valid: every state is active
     shift = np.random.default_rng(2).normal(scale=0.05, size=a.dim)
