@@ -144,7 +144,8 @@ class FilterConfig:
         Online relinearisation (incremental recovery only,
         :mod:`eifslam.estimation.relinearisation`): before each recovery, a stored ``Zm``
         or ``ZR``/``ZT`` whose states are all in the active window is relinearised at
-        the current estimate when its linearisation error exceeds this many standard
+        the current estimate (its Jacobian where ``first_estimate_jacobians`` takes it)
+        when its linearisation error exceeds this many standard
         deviations of the measurement. ``None``: measurements stay linearised where
         they were fused (the default: on a slow walk with small parallax, 0.1 made the
         filter diverge; on the corridor 0.1 brings the estimate to within 0.05% of the
