@@ -258,14 +258,10 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         if aware:  # innovation covariance R + Jf P_f Jf^T where the feature's covariance is at hand
             chi2 = factors.feature_innovation_chi2(innov, W, J[:, :, 7:], self.feature_covariances(obs.feature), chi2)
             ok &= chi2 <= self.config.gate_chi2
-        mode = self.config.first_estimate_jacobians
-        if mode != FirstEstimates.OFF and len(obs):
-            at = self.first_estimates
-            if mode == FirstEstimates.FEATURES:  # the features' entries only, the poses' at x
-                at, cols = self.x.copy(), idx[:, 7:]
-                at[cols] = self.first_estimates[cols]
-            fe = factors.features(self.layout, at, self.camera, self.config, obs, gate=False)
-            ok, J = ok & fe[0], fe[2]
+        at = self.config.first_estimate_jacobians.points(self.x, self.first_estimates)
+        if at is not None and len(obs):  # usable there too: in front, a finite prediction
+            h, J, depth = factors.feature_model_at(idx, *at, self.camera)
+            ok &= (depth > self.config.min_depth) & np.isfinite(np.sum((obs.uv - h) ** 2, 1) / obs.sigma_px**2)
         return ok, idx, J, W, innov, chi2
 
     def fuse_features(self, obs: FeatureObservations, store: bool = True, gate: bool = True) -> FeatureObservations:

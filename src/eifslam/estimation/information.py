@@ -63,14 +63,18 @@ class InformationStore:
         if not (np.all(np.isfinite(Lam)) and np.all(np.isfinite(eta))):
             raise FloatingPointError("refusing to fuse non-finite information")
         k = idx.shape[1]
-        # 32-bit indices while the state allows: summing them into CSC (matrix) is about
-        # twice as fast as with 64-bit ones, and they take half the memory
-        idx = np.asarray(idx, np.int32 if self.dim < _INT32_MAX else np.int64)
+        idx = self._indices(idx)
         self._rows.append(np.repeat(idx, k, axis=1).ravel())
         self._cols.append(np.tile(idx, (1, k)).ravel())
         self._vals.append(Lam.ravel())
         self._pending += Lam.size
         np.add.at(self._vec, idx.ravel(), eta.ravel())
+
+    def _indices(self, idx: IntArray) -> NDArray:
+        """State indices as stored in the triplets: 32-bit while the state allows (summing
+        them into CSC in :meth:`matrix` is about twice as fast as with 64-bit ones, and
+        they take half the memory)."""
+        return np.asarray(idx, np.int32 if self.dim < _INT32_MAX else np.int64)
 
     def add_split(self, idx: IntArray, Lam: Array, eta: Array, split: int) -> None:
         """:meth:`add` for blocks of two parts, each shared by many blocks (the pose and
@@ -99,8 +103,7 @@ class InformationStore:
             InformationStore.add(self, block, (G @ Lam[:, part, part].reshape(len(idx), n * n)).reshape(-1, n, n),
                                  G @ eta[:, part])
         a, b = idx[:, :split], idx[:, split:]
-        a = np.asarray(a, np.int32 if self.dim < _INT32_MAX else np.int64)
-        b = np.asarray(b, a.dtype)
+        a, b = self._indices(a), self._indices(b)
         na, nb = a.shape[1], b.shape[1]
         cross = Lam[:, :split, split:]
         self._rows += [np.repeat(a, nb, axis=1).ravel(), np.repeat(b, na, axis=1).ravel()]

@@ -78,6 +78,14 @@ class FirstEstimates(Choice):
             return cls.ALL if value else cls.OFF
         return super().parse(value, what)
 
+    def points(self, x: np.ndarray, first: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Where a ``Zm``'s Jacobian is taken: the vectors its pose entries and its feature
+        entries are read from (``x`` the current estimate, ``first`` the first estimates);
+        None for ``OFF`` (at ``x``, with the innovation)."""
+        if self == FirstEstimates.OFF:
+            return None
+        return (x if self == FirstEstimates.FEATURES else first), first
+
 
 @dataclass(frozen=True)
 class FilterConfig:

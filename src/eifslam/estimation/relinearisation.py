@@ -40,10 +40,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import ConfigError
-from ..geometry import models
+from . import factors
 from .measurements import (FeatureObservations, RelativePose, pack_features, pack_relative, unpack_features,
                            unpack_relative)
-from .options import FirstEstimates
 from .statedict import check_index, sub, take, take_int
 
 if TYPE_CHECKING:  # the filter owns this object; no import at run time
@@ -248,15 +247,11 @@ class OnlineRelinearisation:
                 continue
             i = live.idx[cand]
             if name == "features":  # factors.features on the stored indices (no layout look-ups)
-                c = filt.camera
-                h, Jp, Jf, depth = models.feature_model(x[i[:, :3]], x[i[:, 3:7]], x[i[:, 7:]], c.fx, c.fy, c.cx, c.cy)
-                fej = filt.config.first_estimate_jacobians
-                if fej != FirstEstimates.OFF:  # the Jacobian where the filter's option takes it
-                    xf = filt.first_estimates
-                    xp = x if fej == FirstEstimates.FEATURES else xf
-                    _, Jp, Jf, _ = models.feature_model(xp[i[:, :3]], xp[i[:, 3:7]], xf[i[:, 7:]], c.fx, c.fy,
-                                                        c.cx, c.cy)
-                innov, J = live.meas.uv[cand] - h, np.concatenate([Jp, Jf], 2)
+                h, J, depth = factors.feature_model_at(i, x, x, filt.camera)
+                at = filt.config.first_estimate_jacobians.points(x, filt.first_estimates)
+                if at is not None:  # the Jacobian where the filter's option takes it
+                    J = factors.feature_model_at(i, *at, filt.camera)[1]
+                innov = live.meas.uv[cand] - h
                 ok = depth > filt.config.min_depth
             else:
                 _, J, _, innov = filt.linearise_relative([live.meas[j] for j in cand])
