@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eifslam.errors import ConfigError
+from eifslam.errors import ConfigError, EstimatorError
 from eifslam.estimation.filter import InformationFilter
 from eifslam.estimation.incremental import IncrementalRecovery
 from eifslam.estimation.measurements import RelativePose
@@ -255,6 +255,47 @@ def test_indefinite_window_is_solved_without_a_rebuild(monkeypatch):
     assert st.indefinite_solves > 0 and st.fallbacks == 0 and st.rebuilds == 1
     assert max(diffs) < 1e-8
     assert rel_err(f.x, full_solve(f)) < 1e-8
+
+
+def test_indefinite_poses_to_eliminate_fall_back_to_the_full_solve(monkeypatch):
+    """When the poses to eliminate have numerically indefinite information (kitti-07 with
+    ``gate_feature_uncertainty`` stopped the run with a LinAlgError there), the frame is
+    solved by the full sparse solve and the window rebuilt: the run goes on, exact."""
+    import eifslam.estimation.window as winmod
+
+    with pytest.raises(EstimatorError, match="numerically indefinite"):
+        winmod.pose_cholesky(np.diag([1.0, -1.0, 1.0, 1.0, 1.0, 1.0, 1.0]))
+    sc, m = scene(40, 3)
+    f = InformationFilter(sc.camera, recovery="incremental", window=1)
+    real = winmod.cho_factor
+    calls = {"n": 0}
+
+    def flaky(A, *args, **kw):  # every second elimination of poses meets an indefinite block
+        calls["n"] += 1
+        if calls["n"] % 2 == 0:
+            raise np.linalg.LinAlgError("not positive definite (simulated)")
+        return real(A, *args, **kw)
+
+    monkeypatch.setattr(winmod, "pose_cholesky", lambda A: _pose_cholesky_with(flaky, A))
+    diffs = []
+
+    def check(k, filt):
+        a = filt.incremental.active_indices if filt.incremental.valid else slice(None)
+        diffs.append(rel_err(filt.x[a], full_solve(filt)[a]))
+
+    run_slam(sc, m, f, on_frame=check)
+    st = f.incremental.stats
+    assert calls["n"] >= 4 and st.fallbacks >= 2 and st.rebuilds >= 2
+    assert max(diffs) < 1e-8
+    assert rel_err(f.x, full_solve(f)) < 1e-8
+
+
+def _pose_cholesky_with(factor, A):
+    """``window.pose_cholesky`` with ``factor`` in place of SciPy's ``cho_factor``."""
+    try:
+        return factor(A, lower=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        raise EstimatorError("the information of poses to eliminate is numerically indefinite") from None
 
 
 def test_loop_closure_too_costly_to_reactivate_restarts_the_window_from_one_factorisation():

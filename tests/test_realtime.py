@@ -225,6 +225,25 @@ def test_ctrl_c_stops_cleanly_and_keeps_the_estimate(scene_frames, monkeypatch):
     assert max(scene_frames.loaded[-3:]) <= 5 + 2 + 1  # it stopped a few frames ahead
 
 
+def test_an_internal_error_stops_the_run_and_keeps_the_estimate(scene_frames, monkeypatch):
+    """A bug or a numerical failure no check foresaw (not an ``EifslamError``) ends the run
+    as a failing frame does: what was estimated is kept, the reason is recorded."""
+    from eifslam.system import slam as slam_module
+
+    real_track = slam_module.Slam.track
+
+    def track(self, image, timestamp=None):
+        if self.n_frames == 5:
+            raise np.linalg.LinAlgError("1-th leading minor of the array is not positive definite")
+        return real_track(self, image, timestamp)
+
+    monkeypatch.setattr(slam_module.Slam, "track", track)
+    run = run_sequence(scene_frames, SlamConfig(), quiet=True, prefetch=2)
+    assert run.stopped == ("stopped at a failing frame by an internal error: LinAlgError: 1-th leading minor "
+                           "of the array is not positive definite")
+    assert run.slam.n_frames == 5 and len(run.slam.trajectory()[0]) >= 4
+
+
 def test_prefetcher_stops_when_closed_on_a_full_queue():
     seq = _Frames(PinholeCamera(100.0, 100.0, 50.0, 50.0, 100, 100), [np.zeros((4, 4))] * 1000, range(1000))
     pre = FramePrefetcher(seq, 1000, detect=lambda im: im.sum(), depth=2)

@@ -59,7 +59,7 @@ from typing import Any, Iterator, Mapping, Protocol
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
-from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg import cho_solve
 
 from ..errors import ConfigError, EstimatorError, SessionError
 from .information import InformationStore
@@ -67,7 +67,7 @@ from .recovery import factorize
 from .statedict import sub, take_ids, take_int
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout
 from .reactivation import ReactivatingWindow
-from .window import Conditional, RecoveryStats, spd_inverse_3x3
+from .window import Conditional, RecoveryStats, pose_cholesky, spd_inverse_3x3
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -475,7 +475,7 @@ class IncrementalRecovery(ReactivatingWindow):
         P, bp = Spp[:na, :na], sv[:na]
         if len(mp):
             A, C, bq = Spp[na:, na:], Spp[na:, :na], sv[na:]
-            chol = cho_factor(A, lower=True, check_finite=False)
+            chol = pose_cholesky(A)
             Y = cho_solve(chol, np.column_stack([C, bq]), check_finite=False)
             P = P - C.T @ Y[:, :-1]
             bp = bp - C.T @ Y[:, -1]

@@ -15,11 +15,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 import scipy.sparse as sp
-from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg import cho_solve
 
 from ..errors import EstimatorError
 from .state import FEATURE_DIM, POSE_DIM
-from .window import ActiveWindow, Conditional
+from .window import ActiveWindow, Conditional, pose_cholesky
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -185,13 +185,13 @@ class ReactivatingWindow(ActiveWindow):
             keep = ~rsel
             A, C, b = c.A, c.C, c.b
             Aqq, Aqr = A[np.ix_(keep, keep)], A[np.ix_(keep, rsel)]
-            chol = cho_factor(Aqq, lower=True, check_finite=False)
+            chol = pose_cholesky(Aqq)
             Y = cho_solve(chol, np.column_stack([Aqr, C[keep], b[keep]]), check_finite=False)
             Hrr = A[np.ix_(rsel, rsel)] - Aqr.T @ Y[:, :nq]
             Hrr = 0.5 * (Hrr + Hrr.T)
             Hrk = C[rsel] - Aqr.T @ Y[:, nq:-1]
             hr = b[rsel] - Aqr.T @ Y[:, -1]
-            Z = cho_solve(cho_factor(Hrr, lower=True, check_finite=False), np.column_stack([Hrk, hr]),
+            Z = cho_solve(pose_cholesky(Hrr), np.column_stack([Hrk, hr]),
                           check_finite=False)
             dK, db = Hrk.T @ Z[:, :-1], Hrk.T @ Z[:, -1]
             Cn = np.column_stack([C[keep], Aqr])

@@ -123,6 +123,18 @@ def _cholesky_3x3(D: Array) -> Array:
         raise EstimatorError("a feature has no information in some direction (seen from one pose only?)") from None
 
 
+def pose_cholesky(A: Array) -> tuple[Array, bool]:
+    """``cho_factor(A, lower=True)`` of the information of poses being eliminated; raises
+    :class:`EstimatorError` when ``A`` is numerically indefinite (``I`` too ill-conditioned
+    for a Cholesky factorisation), so that the caller falls back to a full sparse solve
+    instead of stopping the run."""
+    try:
+        return cho_factor(A, lower=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        raise EstimatorError(f"the information of {len(A) // POSE_DIM} pose(s) to eliminate is numerically "
+                             "indefinite") from None
+
+
 def spd_inverse_3x3(D: Array) -> Array:
     """Inverses of ``(F, 3, 3)`` blocks; raises if a block is not positive definite."""
     try:
@@ -403,7 +415,7 @@ class ActiveWindow:
             k = ~q
             Pqq, Pqk = self.P[np.ix_(q, q)], self.P[np.ix_(q, k)]
             bq = self.bp[q]
-            chol = cho_factor(Pqq, lower=True, check_finite=False)  # Pqq is a copy (fancy indexing)
+            chol = pose_cholesky(Pqq)  # Pqq is a copy (fancy indexing)
             self.P = self.P[np.ix_(k, k)] - Pqk.T @ cho_solve(chol, Pqk)
             self.bp = self.bp[k] - Pqk.T @ cho_solve(chol, bq)
             nz = np.flatnonzero(np.any(Pqk != 0, axis=0))
@@ -417,4 +429,4 @@ class ActiveWindow:
         self.P = 0.5 * (self.P + self.P.T)  # keep the rounding of the Schur updates symmetric
 
 
-__all__ = ["ActiveWindow", "RecoveryStats"]
+__all__ = ["ActiveWindow", "RecoveryStats", "pose_cholesky"]

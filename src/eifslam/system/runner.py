@@ -345,6 +345,8 @@ def _track_all(seq, slam: Slam, start: int, n: int, depth: int, scale: tuple | N
         stopped = f"interrupted ({exc})" if str(exc) else "interrupted"
     except EifslamError as exc:
         stopped = f"stopped at a failing frame: {exc}"
+    except Exception as exc:  # noqa: BLE001 - a bug must not lose what was estimated
+        stopped = f"stopped at a failing frame by an internal error: {type(exc).__name__}: {exc}"
     finally:
         if pre is not None:
             pre.close()
