@@ -87,6 +87,27 @@ class FirstEstimates(Choice):
         return (x if self == FirstEstimates.FEATURES else first), first
 
 
+class NoiseEstimate(Choice):
+    """How robust smoothing sets its ``Zm`` gate from the residuals
+    (``SystemConfig.smoothing_noise_estimate``; :mod:`eifslam.estimation.noise`).
+
+    ``OFF``: at the stated ``sigma_px``; ``GLOBAL``: scaled by one noise ratio from every
+    ``Zm``; ``TRACK_LENGTH``: by one ratio per group of track lengths (2; 3-4; 5-8; ...).
+    """
+
+    OFF = "off"
+    GLOBAL = "global"
+    TRACK_LENGTH = "track_length"
+
+    @classmethod
+    def parse(cls, value: "str | bool | Choice", what: str):
+        """As :meth:`Choice.parse`; ``True`` is ``TRACK_LENGTH`` (the estimate on) and
+        ``False`` ``OFF`` (the option was a bool before ``TRACK_LENGTH``)."""
+        if isinstance(value, (bool, np.bool_)):
+            return cls.TRACK_LENGTH if value else cls.OFF
+        return super().parse(value, what)
+
+
 @dataclass(frozen=True)
 class FilterConfig:
     """Settings of the information filter.

@@ -19,7 +19,17 @@ import scipy.sparse as sp
 from ..errors import EstimatorError
 from .filter import InformationFilter
 from .measurements import FeatureObservations, RelativePose
+from .noise import FeatureGate, residual_noise_scale, track_length_noise  # noqa: F401  (re-exported)
+from .options import NoiseEstimate
 from .scale import recover_scale, rescale  # noqa: F401  (re-exported)
+
+#: a ``Zm`` gate: one normalised-innovation-squared bound, or one per feature
+Gate = float | FeatureGate
+
+
+def _gate_of(gate: Gate, obs: FeatureObservations) -> float | np.ndarray:
+    """The gate of each of ``obs`` (a float, or ``(N,)`` for a per-feature gate)."""
+    return gate.of(obs.feature) if isinstance(gate, FeatureGate) else gate
 
 
 @dataclass
@@ -48,8 +58,12 @@ class SmoothingReport:
     reason : str
         Why smoothing stopped, one line.
     noise_scale : float
-        ``s`` of robust smoothing's noise estimate (:func:`residual_noise_scale`): the
-        ``Zm`` gate was ``feature_chi2 * s**2`` (1: the given gate).
+        ``s`` of robust smoothing's noise estimate over every ``Zm``
+        (:func:`~eifslam.estimation.noise.residual_noise_scale`): the ``Zm`` gate was
+        ``feature_chi2 * s**2`` (1: the given gate), or per group of track lengths below.
+    noise_groups : list of NoiseGroup
+        With the estimate by track length: each group's ``s`` (its features' gate is
+        ``feature_chi2 * min(1, s)**2``).
     """
 
     passes: int = 0
@@ -60,6 +74,7 @@ class SmoothingReport:
     rejected_features: int = 0
     rejected_relative: int = 0
     noise_scale: float = 1.0
+    noise_groups: list = field(default_factory=list)
     common_costs: list[float] = field(default_factory=list)
     kept: str = "smoothed"
     reason: str = ""
@@ -102,7 +117,7 @@ def model_cost(filt: InformationFilter, fused: np.ndarray) -> float:
     return total
 
 
-def measurement_cost(filt: InformationFilter, feature_chi2: float | None = None,
+def measurement_cost(filt: InformationFilter, feature_chi2: Gate | None = None,
                      relative_chi2: float | None = None, features: FeatureObservations | None = None,
                      relative: list[RelativePose] | None = None) -> float:
     """Sum of squared normalised residuals of ``Zm`` and ``ZR``/``ZT`` at ``x``.
@@ -110,9 +125,9 @@ def measurement_cost(filt: InformationFilter, feature_chi2: float | None = None,
     Parameters
     ----------
     filt : InformationFilter
-    feature_chi2, relative_chi2 : float or None
+    feature_chi2, relative_chi2 : float or None (``feature_chi2`` also a FeatureGate)
         Cap each ``Zm``'s (``ZR``/``ZT`` pair's) normalised innovation squared at this
-        value: the truncated least-squares cost that dropping the measurements above a
+        value (a ``Zm``'s: at its feature's gate): the truncated least-squares cost that dropping the measurements above a
         gate minimises, so estimates that keep different subsets of one set compare on
         that whole set. ``None``: no cap, and a ``Zm`` behind the camera counts as
         ``1e6`` (it cannot be linearised; with a cap it counts as the cap).
@@ -125,49 +140,14 @@ def measurement_cost(filt: InformationFilter, feature_chi2: float | None = None,
     if len(obs):
         _, _, _, _, _, chi2 = filt.linearise_features(obs, gate=False)
         chi2 = np.where(np.isfinite(chi2), chi2, 1e6)
-        total += float(np.sum(chi2 if feature_chi2 is None else np.minimum(chi2, feature_chi2)))
+        total += float(np.sum(chi2 if feature_chi2 is None else np.minimum(chi2, _gate_of(feature_chi2, obs))))
     if rel:
         chi2 = _relative_chi2(filt, rel)
         total += float(np.sum(chi2 if relative_chi2 is None else np.minimum(chi2, relative_chi2)))
     return total
 
 
-def residual_noise_scale(filt: InformationFilter, features: FeatureObservations | None = None) -> float:
-    """How large the ``Zm`` noise is against the stated one, from the residuals at ``x``.
-
-    ``s = sigma_hat / sigma`` with ``sigma_hat**2 = median(chi2) / median(chi2_2) *
-    n / (n - p)``: the median of the normalised innovations squared (2 DOF each) against
-    the median of a chi-square with 2 DOF (``2 ln 2``), a robust variance estimate that
-    outliers barely move, corrected for the parameters the residuals were fitted with
-    (``n = 2 N`` residuals of ``N`` measurements; ``p`` = 3 per observed feature and 6
-    per observing pose). Only meaningful at an estimate fitted to these measurements (the
-    filter's, or smoothed).
-
-    Parameters
-    ----------
-    filt : InformationFilter
-    features : FeatureObservations, optional
-        The measurements (default: every stored ``Zm``).
-
-    Returns
-    -------
-    float
-        ``s > 0``; 1.0 when there are too few measurements to tell (``n <= 2 p``).
-    """
-    obs = filt.store.all_features() if features is None else features
-    if not len(obs):
-        return 1.0
-    _, _, _, _, _, chi2 = filt.linearise_features(obs, gate=False)
-    chi2 = chi2[np.isfinite(chi2)]
-    n = 2 * len(chi2)
-    p = 3 * len(np.unique(obs.feature)) + 6 * len(np.unique(obs.pose))
-    if n <= 2 * p or not len(chi2):
-        return 1.0
-    s2 = float(np.median(chi2)) / (2.0 * np.log(2.0)) * n / (n - p)
-    return float(np.sqrt(s2)) if np.isfinite(s2) and s2 > 0 else 1.0
-
-
-def reject_outliers(filt: InformationFilter, feature_chi2: float | None, relative_chi2: float | None,
+def reject_outliers(filt: InformationFilter, feature_chi2: Gate | None, relative_chi2: float | None,
                     min_pose_features: int = 12) -> tuple[int, int]:
     """Drop stored measurements that the current estimate contradicts (a robust step the
     paper does not take: its front end had no outliers left).
@@ -177,7 +157,8 @@ def reject_outliers(filt: InformationFilter, feature_chi2: float | None, relativ
     exceeds ``relative_chi2``, the pairs above both that gate and half the largest value
     go (only those whose two poses keep at least ``min_pose_features`` ``Zm``, so that no
     pose loses what places it), and no ``Zm``. Otherwise every ``Zm`` whose normalised
-    innovation squared exceeds ``feature_chi2``, or whose feature is behind the camera, goes.
+    innovation squared exceeds ``feature_chi2`` (a FeatureGate: its feature's gate), or
+    whose feature is behind the camera, goes.
 
     Returns
     -------
@@ -197,7 +178,7 @@ def reject_outliers(filt: InformationFilter, feature_chi2: float | None, relativ
             return 0, int(drop.sum())
     if feature_chi2 is not None and len(obs):
         _, _, _, _, _, chi2 = filt.linearise_features(obs, gate=False)
-        keep = np.isfinite(chi2) & (chi2 <= feature_chi2)  # behind a camera (inf) fails too
+        keep = np.isfinite(chi2) & (chi2 <= _gate_of(feature_chi2, obs))  # behind a camera (inf) fails too
         n_f = int(len(obs) - keep.sum())
         if n_f:
             filt.store.features = [obs.subset(keep)]
@@ -218,7 +199,7 @@ def _damped_solve(filt: InformationFilter, x0: np.ndarray, lam: float) -> np.nda
 
 def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
            feature_chi2: float | None = None, relative_chi2: float | None = None,
-           max_rounds: int = 4, estimate_noise: bool = False) -> SmoothingReport:
+           max_rounds: int = 4, estimate_noise: NoiseEstimate | str | bool = NoiseEstimate.OFF) -> SmoothingReport:
     """Relinearise and recover until the update is small (paper III-E); never worse than
     the filter's estimate by the cost.
 
@@ -259,20 +240,27 @@ def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
         Gates of :func:`reject_outliers` (``None``: keep every measurement of that kind).
     max_rounds : int
         Robust smoothing: at most this many rejection rounds.
-    estimate_noise : bool
+    estimate_noise : NoiseEstimate or {"off", "global", "track_length"} or bool
         Robust smoothing: scale the ``Zm`` gate to the noise the measurements show,
-        ``feature_chi2 * min(1, s**2)`` with ``s`` from :func:`residual_noise_scale` at the
-        filter's estimate (never looser than the gate given; ``report.noise_scale``). The
-        stated pixel noise is a prior guess; a gate set on it passes, on precise images,
-        matches many standard deviations off.
+        ``feature_chi2 * min(1, s**2)`` with ``s`` estimated at the filter's estimate
+        (:mod:`eifslam.estimation.noise`; never looser than the gate given;
+        ``report.noise_scale``, ``report.noise_groups``): one ``s`` for every ``Zm``
+        (``"global"``) or one per group of track lengths (``"track_length"``, ``True``).
+        The stated pixel noise is a prior guess; a gate set on it passes, on precise
+        images, matches many standard deviations off.
     """
     if max_passes < 1:
         raise EstimatorError("smoothing needs at least one pass")
     rep = SmoothingReport()
     robust = feature_chi2 is not None or relative_chi2 is not None
-    if estimate_noise and feature_chi2 is not None:
+    estimate_noise = NoiseEstimate.parse(estimate_noise, "estimate_noise")
+    if estimate_noise == NoiseEstimate.GLOBAL and feature_chi2 is not None:
         rep.noise_scale = min(1.0, residual_noise_scale(filt))
         feature_chi2 = feature_chi2 * rep.noise_scale**2
+    elif estimate_noise == NoiseEstimate.TRACK_LENGTH and feature_chi2 is not None:
+        noise = track_length_noise(filt)
+        rep.noise_scale, rep.noise_groups = min(1.0, noise.overall), noise.groups
+        feature_chi2 = noise.gate(feature_chi2)
     obs0, rel0 = filt.store.all_features(), list(filt.store.relative)
     feats0 = list(filt.store.features)
     x0, I0, i0 = filt.x.copy(), filt.info.matrix().copy(), filt.info.vector.copy()

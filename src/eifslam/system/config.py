@@ -13,7 +13,7 @@ from enum import Enum
 from typing import Any, Mapping
 
 from ..errors import ConfigError
-from ..estimation.options import Choice, FilterConfig, Recovery
+from ..estimation.options import Choice, FilterConfig, NoiseEstimate, Recovery
 from ..frontend import FrontEndConfig
 
 
@@ -81,14 +81,17 @@ class SystemConfig:
         ``relative_gate_chi2`` (worst first), then the ``Zm`` that fail the filter's
         ``gate_chi2``, at the smoothed estimate, and smooths again
         (:func:`eifslam.smoothing.reject_outliers`); False relinearises every fused one.
-    smoothing_noise_estimate : bool
+    smoothing_noise_estimate : NoiseEstimate or {"track_length", "global", "off"} or bool
         Robust smoothing gates ``Zm`` against the pixel noise the measurements show rather
         than the stated ``sigma_px``: the gate is scaled by ``min(1, s**2)``, ``s`` the
         robust, degrees-of-freedom-corrected ratio of the residuals at the filter's
-        estimate to ``sigma_px`` (:func:`eifslam.smoothing.residual_noise_scale`). On the
-        shared sets ``s`` is 0.11-0.7 (the SIFT keypoints are far better than 1 px), and
-        the 3-sigma gate at 1 px kept matches 10-20 true standard deviations off
-        (docs/estimator.md, "Noise from the residuals"). True (default).
+        estimate to ``sigma_px`` (:mod:`eifslam.estimation.noise`). On the shared sets
+        ``s`` is 0.11-0.7 (the SIFT keypoints are far better than 1 px), and the 3-sigma
+        gate at 1 px kept matches 10-20 true standard deviations off (docs/estimator.md,
+        "Noise from the residuals"). ``"track_length"`` (default; ``true``): one ``s``
+        per group of features with about as many ``Zm`` (2; 3-4; 5-8; ...), since long
+        tracks drift more; ``"global"``: one ``s`` for every ``Zm``; ``"off"``
+        (``false``): the gate at the stated noise.
     reobserve_radius_px : float or None
         Map features that frame-to-frame tracking lost are searched for again in each
         new frame within this many pixels of where the pose guess projects them
@@ -251,7 +254,7 @@ class SystemConfig:
     relative_gate_chi2: float | None = 50.0
     relative_gate_pose_uncertainty: bool = False
     robust_smoothing: bool = True
-    smoothing_noise_estimate: bool = True
+    smoothing_noise_estimate: NoiseEstimate = NoiseEstimate.TRACK_LENGTH
     reobserve_radius_px: float | None = None
     relocalise_top: int = 5
     min_map_features: int = 12
@@ -344,6 +347,8 @@ class SystemConfig:
         if self.relative_gate_chi2 is not None and not self.relative_gate_chi2 > 0:
             raise ConfigError("system.relative_gate_chi2 must be positive or None")
         object.__setattr__(self, "recovery", Recovery.parse(self.recovery, "system.recovery"))
+        object.__setattr__(self, "smoothing_noise_estimate",
+                           NoiseEstimate.parse(self.smoothing_noise_estimate, "system.smoothing_noise_estimate"))
         if int(self.window) < 1:
             raise ConfigError("system.window must be at least 1")
         if self.relocalise_candidates < 0:
