@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from eifslam.estimation.measurements import FeatureObservations
-from eifslam.estimation.noise import FeatureGate, track_length_noise
+from eifslam.estimation.noise import MIN_GROUP_ZM, FeatureGate, track_length_noise
 from eifslam.estimation.smoothing import residual_noise_scale, smooth
 from eifslam.sim.frontend import SyntheticFrontEnd
 from eifslam.sim.synthetic import corridor_scene
@@ -127,6 +127,7 @@ def test_every_track_length_group_finds_the_same_noise():
     noise = track_length_noise(slam.filter)
     told = [g for g in noise.groups if g.scale is not None]
     assert len(told) >= 3, noise.groups
+    assert all(g.zm >= MIN_GROUP_ZM for g in noise.groups)  # the 4 Zm of 2-view tracks joined 3-4
     for g in told:
         assert 0.75 * 0.3 < g.scale < 1.25 * 0.3, g
     assert 0.8 * 0.3 < noise.overall < 1.2 * 0.3
@@ -154,6 +155,7 @@ def test_long_tracks_noisier_than_short_ones_get_their_own_gate():
         assert g.longest < 9 or g.shortest >= 9  # groups double in length: 9-16 is one
         assert 0.75 * want < g.scale < 1.25 * want, (g, want)
     assert 0.3 < noise.overall < 0.6
+    assert all(g.zm >= MIN_GROUP_ZM for g in noise.groups)
     gate = noise.gate(9.21)
     per_zm = gate.of(obs.feature)
     assert np.all(per_zm <= 9.21)
@@ -184,3 +186,26 @@ def test_a_bad_value_is_refused():
 
     with pytest.raises(ConfigError, match="smoothing_noise_estimate must be one of off, global, track_length"):
         SlamConfig.from_dict({"system": {"smoothing_noise_estimate": "per_octave"}})
+
+
+def test_small_groups_join_their_neighbours():
+    """Track lengths 2 (10 Zm), 3-4 (630), 5-8 (640), 17-32 (20 Zm, one feature): the
+    one long feature joins 5-8 and the 2-view tracks join 3-4, so every group has at
+    least ``MIN_GROUP_ZM`` ``Zm``, and the long group's noise shows in its scale."""
+    from types import SimpleNamespace
+
+    lengths = [2] * 5 + [3] * 10 + [4] * 150 + [8] * 80 + [20]
+    feature = np.repeat(np.arange(len(lengths)), lengths)
+    pose = np.concatenate([np.arange(m) for m in lengths])
+    obs = FeatureObservations.make(pose, feature, np.zeros((len(feature), 2)), 1.0)
+    rng = np.random.default_rng(0)
+    scale_of = np.where(np.array(lengths) >= 8, 0.5, 0.25)[feature]
+    chi2 = rng.chisquare(2, len(feature)) * scale_of**2
+
+    filt = SimpleNamespace(store=SimpleNamespace(all_features=lambda: obs),
+                           linearise_features=lambda o, gate=False: (None,) * 5 + (chi2,))
+    noise = track_length_noise(filt)
+    assert [(g.shortest, g.longest, g.zm) for g in noise.groups] == [(2, 4, 640), (8, 20, 660)]
+    assert 1.6 < noise.groups[1].scale / noise.groups[0].scale < 2.5
+    gate = noise.gate(9.21).of(np.array([0, 5, 100, 200, 245]))  # tracks of 2, 3, 4, 8 and 20 views
+    assert gate[0] == gate[1] == gate[2] < gate[3] == gate[4] <= 9.21

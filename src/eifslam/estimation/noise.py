@@ -27,10 +27,16 @@ from .measurements import FeatureObservations
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["FeatureGate", "NoiseGroup", "TrackLengthNoise", "residual_noise_scale", "track_length_noise"]
+__all__ = ["MIN_GROUP_ZM", "FeatureGate", "NoiseGroup", "TrackLengthNoise", "residual_noise_scale", "track_length_noise"]
 
 #: the median of a chi-square with 2 degrees of freedom
 _MEDIAN_CHI2_2 = 2.0 * np.log(2.0)
+
+#: ``Zm`` a group of track lengths needs for a scale of its own: the median of ``N``
+#: chi-square(2) values estimates ``s**2`` with a relative standard error of
+#: ``1 / (ln 2 sqrt(N))``, so ``s`` to 10% (one standard error) takes ``N >= 53``;
+#: a smaller group joins the next shorter one (the shortest: the next longer one)
+MIN_GROUP_ZM = int(np.ceil((1.0 / (np.log(2.0) * 2 * 0.10)) ** 2))
 
 
 def _scale(chi2: Array, fitted: float) -> float | None:
@@ -161,7 +167,9 @@ def track_length_noise(filt: InformationFilter, features: FeatureObservations | 
 
     A feature with ``m`` stored ``Zm`` is in group ``ceil(log2 m)`` (2; 3-4; 5-8; 9-16;
     ...): groups double in length, as a keypoint's drift grows with how far it was
-    followed. Each group's scale is corrected for its own fitted parameters: 3 per
+    followed. A group with fewer than :data:`MIN_GROUP_ZM` ``Zm`` joins the next shorter
+    group (the shortest: the next longer one), so that no few features set their own
+    gate. Each group's scale is corrected for its own fitted parameters: 3 per
     feature, and the poses' ``6 P`` shared in proportion to the group's ``Zm``.
 
     Parameters
@@ -177,6 +185,16 @@ def track_length_noise(filt: InformationFilter, features: FeatureObservations | 
         return TrackLengthNoise(overall)
     ids, inv, counts = np.unique(obs.feature, return_inverse=True, return_counts=True)
     group = np.ceil(np.log2(np.maximum(counts, 1))).astype(np.int64)  # per feature
+    levels = np.unique(group)
+    zm_per_level = np.array([counts[group == g].sum() for g in levels])
+    for a in range(len(levels) - 1, 0, -1):  # the longest tracks first: too few Zm, join the shorter
+        if zm_per_level[a] < MIN_GROUP_ZM:
+            group[group == levels[a]] = levels[a - 1]
+            zm_per_level[a - 1] += zm_per_level[a]
+            zm_per_level[a] = 0
+    rest = np.flatnonzero(zm_per_level[1:]) + 1
+    if zm_per_level[0] < MIN_GROUP_ZM and len(rest):  # the shortest: join the next longer
+        group[group == levels[0]] = levels[rest[0]]
     zm_group = group[inv]
     ok = np.isfinite(chi2)
     pose_params = 6.0 * len(np.unique(obs.pose))
