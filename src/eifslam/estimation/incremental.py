@@ -238,7 +238,7 @@ class IncrementalRecovery(ReactivatingWindow):
         and rebuilds from the full ``I`` at its next :meth:`step`. Pickle the owner's
         complete estimate (:meth:`full_solution`) if it is needed after loading."""
         state = self.__dict__.copy()
-        state.update(self.empty_window(), _conds=[], _pending=[], _late=[], _valid=False,
+        state.update(self.empty_window(), _conds=[], _backsub=None, _pending=[], _late=[], _valid=False,
                      _owner=np.full(len(self._owner), -1, np.int64), _pos=np.full(len(self._pos), -1, np.int64))
         return state
 
@@ -400,6 +400,7 @@ class IncrementalRecovery(ReactivatingWindow):
         active[fa] = active[pa] = True
         m = np.flatnonzero(~active)
         self._conds = []
+        self._backsub = None  # its merged chunks were of the old conditionals
         self._owner = np.full(n, -1, np.int64)
         mf, mp = m[isf[m]], m[~isf[m]]
         if len(m) and 0 < self.undoable_rebuild_pose_entries and len(mp) <= self.undoable_rebuild_pose_entries:

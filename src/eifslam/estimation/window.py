@@ -27,6 +27,7 @@ from scipy.linalg import cho_factor, cho_solve, solve
 from scipy.linalg.blas import dsyrk
 
 from ..errors import EstimatorError
+from .backsub import BackSubstitution
 from .state import FEATURE_DIM, POSE_DIM
 
 Array = NDArray[np.float64]
@@ -287,7 +288,9 @@ class ActiveWindow:
         return 0.5 * (out + out.T)
 
     def full_solution(self, x: Array) -> Array:
-        """Back-substitute every marginalised state into ``x`` (in place) in ``O(n)``.
+        """Back-substitute every marginalised state into ``x`` (in place) in ``O(n)``
+        (:class:`~eifslam.estimation.backsub.BackSubstitution`: the poses newest first,
+        then the features in merged chunks).
 
         ``x`` must hold the current window solution (as :meth:`step` left it); entries
         added to the layout after the last step are left untouched.
@@ -295,10 +298,10 @@ class ActiveWindow:
         if len(self.xp) != len(self.pidx) or len(self.xf) != len(self.fidx):
             return x  # the window changed without a solve: nothing consistent to add
         x[self.pidx], x[self.fidx] = self.xp, self.xf
-        for c in reversed(self._conds):
-            if c is not None:
-                c.apply(x)
-        return x
+        backsub = self.__dict__.get("_backsub")
+        if backsub is None:
+            backsub = self._backsub = BackSubstitution()
+        return backsub.apply(self._conds, x)
 
     # -- window maintenance -------------------------------------------------------------
     def _append(self, new: list[tuple[bool, int]]) -> None:

@@ -1,0 +1,72 @@
+"""Back-substitution with merged feature conditionals (estimation/backsub.py) against the
+one-by-one back-substitution and the full solve, through re-activations that undo and
+split conditionals inside merged chunks."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from eifslam.estimation import backsub
+from eifslam.estimation.filter import InformationFilter
+from test_incremental import _old_image_again, full_solve, rel_err, run_slam, scene
+
+
+def one_by_one(conds, x: np.ndarray) -> np.ndarray:
+    for c in reversed(conds):
+        if c is not None:
+            c.apply(x)
+    return x
+
+
+def test_merged_chunks_equal_one_by_one_and_follow_undone_conditionals(monkeypatch):
+    monkeypatch.setattr(backsub, "CHUNK", 8)  # several complete chunks in a short run
+    sc, m = scene(40, 7)
+    f = InformationFilter(sc.camera, recovery="incremental", window=1)
+    merged_uses, diffs = [], []
+    real_apply = backsub._Merged.apply  # noqa: SLF001
+
+    def counting(self, x):
+        merged_uses.append(len(self.conds))
+        return real_apply(self, x)
+
+    monkeypatch.setattr(backsub._Merged, "apply", counting)  # noqa: SLF001
+
+    def check(k, filt):
+        inc = filt.incremental
+        if k in (20, 30):  # undo (and split) conditionals of complete, already merged chunks
+            _old_image_again(filt, m, k - 12)
+            filt.recover_active()
+        a = filt.x.copy()
+        inc.full_solution(a)
+        b = one_by_one(inc._conds, filt.x.copy())  # noqa: SLF001
+        diffs.append(float(np.max(np.abs(a - b))) / max(1.0, float(np.abs(b).max())))
+
+    run_slam(sc, m, f, on_frame=check)
+    st = f.incremental.stats
+    assert st.reactivations >= 2 and st.rebuilds == 1
+    assert len(merged_uses) > 20 and max(merged_uses) > 1
+    assert max(diffs) < 1e-13
+    assert rel_err(f.x, full_solve(f)) < 1e-8
+    assert rel_err(f.x, np.linalg.solve(f.information_matrix().toarray(), f.information_vector())) < 1e-8
+
+
+def test_a_chunk_is_merged_once_and_again_only_when_its_conditionals_change(monkeypatch):
+    monkeypatch.setattr(backsub, "CHUNK", 4)
+    sc, m = scene(30, 3)
+    f = run_slam(sc, m, InformationFilter(sc.camera, recovery="incremental", window=1))
+    inc = f.incremental
+    built = []
+    real_of = backsub._Merged.of  # noqa: SLF001
+    monkeypatch.setattr(backsub._Merged, "of", staticmethod(lambda conds: built.append(len(conds)) or real_of(conds)))  # noqa: SLF001
+    inc._backsub = None  # noqa: SLF001
+    x1 = inc.full_solution(f.x.copy())
+    n_first = len(built)
+    assert n_first > 2
+    x2 = inc.full_solution(f.x.copy())
+    assert len(built) == n_first and np.array_equal(x1, x2)  # cached: nothing merged again
+    slot = next(s for s, c in enumerate(inc._conds) if c is not None and c.Dinv is not None)  # noqa: SLF001
+    assert inc._reactivate(np.array([inc._conds[slot].idx[0]]))  # noqa: SLF001
+    inc._solve()  # noqa: SLF001
+    x3 = inc.full_solution(f.x.copy())
+    assert n_first < len(built) <= n_first + 1  # the changed chunk alone
+    assert rel_err(x3, full_solve(f)) < 1e-8
