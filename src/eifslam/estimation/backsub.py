@@ -11,10 +11,10 @@ is coupled to it, and features and rebuilds are conditioned on the active poses.
 every pose conditional (and rebuild) is applied, newest first, the feature conditionals
 no longer depend on one another and are applied together. :class:`BackSubstitution`
 merges them in chunks of :data:`CHUNK` consecutive slots, each one CSR product with
-global columns and one batch of 3x3 products, cached as long as the chunk's
+global columns with the 3x3 inverses multiplied in, cached as long as the chunk's
 conditionals are the same objects (an undone or split conditional is a new object, so
-its chunk is merged again). The result is the one-by-one back-substitution's, up to the
-rounding of the 3x3 products.
+its chunk is merged again). The result is the one-by-one back-substitution's, up to
+rounding.
 """
 
 from __future__ import annotations
@@ -40,13 +40,15 @@ CHUNK = 64
 
 @dataclass
 class _Merged:
-    """Feature conditionals ``conds`` merged: ``x[idx] = Dinv (b - C x[:ncols])``."""
+    """Feature conditionals ``conds`` merged: ``x[idx] = m - M x[:ncols]`` with
+    ``m = Dinv b`` and ``M = Dinv C`` (``Dinv`` block diagonal, ``C`` with global
+    columns): one sparse product, the rows of ``M`` as sparse as ``C``'s (a feature's
+    three rows couple to the same poses)."""
 
     conds: "tuple[Conditional, ...]"
     idx: IntArray
-    b: Array
-    Dinv: Array
-    C: sp.csr_matrix
+    m: Array
+    M: sp.csr_matrix
 
     @staticmethod
     def of(conds: "list[Conditional]") -> "_Merged":
@@ -62,15 +64,17 @@ class _Merged:
         ncols = int(indices.max()) + 1 if len(indices) else 0
         idx = np.concatenate([c.idx for c in conds])
         C = sp.csr_matrix((np.concatenate(data), indices, np.concatenate(ptr)), shape=(len(idx), ncols))
-        return _Merged(tuple(conds), idx, np.concatenate([c.b for c in conds]),
-                       np.concatenate([c.Dinv for c in conds]), C)
+        Dinv = np.concatenate([c.Dinv for c in conds])
+        rows = np.repeat(np.arange(len(idx)), 3)
+        cols = (np.arange(len(idx))[:, None] // 3 * 3 + np.arange(3)).ravel()
+        D = sp.csr_matrix((Dinv.reshape(-1, 3).ravel(), (rows, cols)), shape=(len(idx), len(idx)))
+        return _Merged(tuple(conds), idx, D @ np.concatenate([c.b for c in conds]), sp.csr_matrix(D @ C))
 
     def same(self, conds: "list[Conditional]") -> bool:
         return len(conds) == len(self.conds) and all(a is b for a, b in zip(conds, self.conds))
 
     def apply(self, x: Array) -> None:
-        r = self.b - self.C @ x[: self.C.shape[1]]
-        x[self.idx] = np.einsum("fij,fj->fi", self.Dinv, r.reshape(-1, 3)).ravel()
+        x[self.idx] = self.m - self.M @ x[: self.M.shape[1]]
 
 
 class BackSubstitution:

@@ -18,7 +18,7 @@ subclasses it. Pure NumPy/SciPy.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -98,12 +98,21 @@ class Conditional:
     factor: object | None = None
     A: Array | None = None
 
+    _affine: tuple | None = field(default=None, repr=False, compare=False)
+
     def apply(self, x: Array) -> None:
+        """``x[idx] = solve(b - C x[cidx])`` in place; a pose batch as ``k - K x[cidx]``
+        with ``k = A^-1 b``, ``K = A^-1 C`` solved once (a conditional is never changed:
+        undoing one replaces it), one product a back-substitution."""
+        if self.chol is not None:
+            if self._affine is None:
+                self._affine = (cho_solve(self.chol, self.b), cho_solve(self.chol, self.C))
+            k, K = self._affine
+            x[self.idx] = k - K @ x[self.cidx] if len(self.cidx) else k
+            return
         r = self.b - self.C @ x[self.cidx] if len(self.cidx) else self.b.copy()
         if self.Dinv is not None:
             x[self.idx] = np.einsum("fij,fj->fi", self.Dinv, r.reshape(-1, 3)).ravel()
-        elif self.chol is not None:
-            x[self.idx] = cho_solve(self.chol, r)
         else:
             x[self.idx] = self.factor.solve(r)
 
