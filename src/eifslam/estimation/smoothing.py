@@ -127,9 +127,9 @@ def measurement_cost(filt: InformationFilter, feature_chi2: Gate | None = None,
     filt : InformationFilter
     feature_chi2, relative_chi2 : float or None (``feature_chi2`` also a FeatureGate)
         Cap each ``Zm``'s (``ZR``/``ZT`` pair's) normalised innovation squared at this
-        value (a ``Zm``'s: at its feature's gate): the truncated least-squares cost that dropping the measurements above a
-        gate minimises, so estimates that keep different subsets of one set compare on
-        that whole set. ``None``: no cap, and a ``Zm`` behind the camera counts as
+        value (a FeatureGate: each ``Zm`` at its feature's gate): the truncated
+        least-squares cost that dropping the measurements above a gate minimises, so
+        estimates that keep different subsets of one set compare on that whole set. ``None``: no cap, and a ``Zm`` behind the camera counts as
         ``1e6`` (it cannot be linearised; with a cap it counts as the cap).
     features, relative : optional
         The measurements to score (default: every stored one).
@@ -198,8 +198,8 @@ def _damped_solve(filt: InformationFilter, x0: np.ndarray, lam: float) -> np.nda
 
 
 def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
-           feature_chi2: float | None = None, relative_chi2: float | None = None,
-           max_rounds: int = 4, estimate_noise: NoiseEstimate | str | bool = NoiseEstimate.OFF) -> SmoothingReport:
+           feature_chi2: float | None = None, relative_chi2: float | None = None, max_rounds: int = 4,
+           estimate_noise: NoiseEstimate | str | bool = NoiseEstimate.OFF) -> SmoothingReport:
     """Relinearise and recover until the update is small (paper III-E); never worse than
     the filter's estimate by the cost.
 
