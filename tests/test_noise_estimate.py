@@ -209,3 +209,29 @@ def test_small_groups_join_their_neighbours():
     assert 1.6 < noise.groups[1].scale / noise.groups[0].scale < 2.5
     gate = noise.gate(9.21).of(np.array([0, 5, 100, 200, 245]))  # tracks of 2, 3, 4, 8 and 20 views
     assert gate[0] == gate[1] == gate[2] < gate[3] == gate[4] <= 9.21
+
+
+def test_a_zm_dropped_at_a_worse_estimate_comes_back_when_it_fits():
+    """Rejection re-selects the ``Zm`` among every candidate at the current estimate:
+    the ``Zm`` of a pose dropped while its estimate was 0.5 m off come back once it is
+    back, the ones that still fail stay out, and the count is of changed memberships."""
+    from eifslam.estimation.smoothing import reject_outliers
+
+    slam = _run(1.0, 1.0)
+    filt = slam.filter
+    obs0 = filt.store.all_features()
+    x_good = filt.x.copy()
+    k = int(np.bincount(obs0.pose).argmax())
+    at = filt.layout.pose_offset(k)
+    filt.x[at:at + 3] += 0.5
+    n_drop, _ = reject_outliers(filt, 9.21, None)
+    assert n_drop >= 0.9 * np.sum(obs0.pose == k)
+    filt.x[:] = x_good
+    assert reject_outliers(filt, 9.21, None)[0] < 0.05 * len(obs0)  # without candidates: nothing returns
+    kept_before = filt.store.all_features()
+    n_back, _ = reject_outliers(filt, 9.21, None, candidates=obs0)
+    now = filt.store.all_features()
+    chi2 = filt.linearise_features(obs0, gate=False)[5]
+    assert len(now) == int(np.sum(chi2 <= 9.21))  # exactly the inliers of this estimate
+    assert np.sum(now.pose == k) >= 0.9 * np.sum(obs0.pose == k)
+    assert n_back == len(now) - len(kept_before)  # only returns here: no inlier left

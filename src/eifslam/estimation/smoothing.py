@@ -61,6 +61,11 @@ class SmoothingReport:
         ``s`` of robust smoothing's noise estimate over every ``Zm``
         (:func:`~eifslam.estimation.noise.residual_noise_scale`): the ``Zm`` gate was
         ``feature_chi2 * s**2`` (1: the given gate), or per group of track lengths below.
+    rejected_features : int
+        ``Zm`` smoothing started with that the returned estimate was not smoothed on
+        (refused by the gate at the returned round's estimate, or behind a camera).
+    rejected_relative : int
+        ``ZR``/``ZT`` pairs dropped over the rounds.
     noise_groups : list of NoiseGroup
         With the estimate by track length: each group's ``s`` (its features' gate is
         ``feature_chi2 * min(1, s)**2``).
@@ -148,7 +153,8 @@ def measurement_cost(filt: InformationFilter, feature_chi2: Gate | None = None,
 
 
 def reject_outliers(filt: InformationFilter, feature_chi2: Gate | None, relative_chi2: float | None,
-                    min_pose_features: int = 12) -> tuple[int, int]:
+                    min_pose_features: int = 12,
+                    candidates: FeatureObservations | None = None) -> tuple[int, int]:
     """Drop stored measurements that the current estimate contradicts (a robust step the
     paper does not take: its front end had no outliers left).
 
@@ -160,9 +166,14 @@ def reject_outliers(filt: InformationFilter, feature_chi2: Gate | None, relative
     innovation squared exceeds ``feature_chi2`` (a FeatureGate: its feature's gate), or
     whose feature is behind the camera, goes.
 
+    With ``candidates`` (every ``Zm`` smoothing started with), the ``Zm`` kept are chosen
+    again among all of them at the current estimate: one dropped in an earlier round, at
+    a worse estimate, comes back when it fits this one. The set is then the inliers of
+    the current estimate, as a robust estimator re-selects them at each iterate.
+
     Returns
     -------
-    (features dropped, relative poses dropped)
+    (features dropped, or with ``candidates`` whose membership changed; relative poses dropped)
     """
     obs = filt.store.all_features()
     if relative_chi2 is not None and filt.store.relative:
@@ -176,6 +187,13 @@ def reject_outliers(filt: InformationFilter, feature_chi2: Gate | None, relative
             drop = bad & (chi2 >= 0.5 * chi2[bad].max())
             filt.store.relative = [r for r, d in zip(rel, drop) if not d]
             return 0, int(drop.sum())
+    if candidates is not None and feature_chi2 is not None and len(candidates):
+        _, _, _, _, _, chi2 = filt.linearise_features(candidates, gate=False)
+        keep = np.isfinite(chi2) & (chi2 <= _gate_of(feature_chi2, candidates))
+        n_f = int(np.sum(keep != _stored(candidates, obs)))
+        if n_f:
+            filt.store.features = [candidates.subset(keep)]
+        return n_f, 0
     if feature_chi2 is not None and len(obs):
         _, _, _, _, _, chi2 = filt.linearise_features(obs, gate=False)
         keep = np.isfinite(chi2) & (chi2 <= _gate_of(feature_chi2, obs))  # behind a camera (inf) fails too
@@ -184,6 +202,17 @@ def reject_outliers(filt: InformationFilter, feature_chi2: Gate | None, relative
             filt.store.features = [obs.subset(keep)]
         return n_f, 0
     return 0, 0
+
+
+def _stored(candidates: FeatureObservations, obs: FeatureObservations) -> np.ndarray:
+    """Which of ``candidates (N,)`` are among ``obs`` (a ``Zm`` is its pose and feature:
+    a feature is measured once per pose)."""
+    span = int(max(candidates.feature.max(initial=0), obs.feature.max(initial=0))) + 1
+
+    def key(o: FeatureObservations) -> np.ndarray:
+        return o.pose.astype(np.int64) * span + o.feature
+
+    return np.isin(key(candidates), key(obs))
 
 
 def _damped_solve(filt: InformationFilter, x0: np.ndarray, lam: float) -> np.ndarray:
@@ -212,7 +241,10 @@ def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
 
     Robust smoothing (``feature_chi2`` or ``relative_chi2`` given): after the passes,
     :func:`reject_outliers` drops the measurements the smoothed estimate contradicts,
-    worst first, and the passes run again; at most ``max_rounds`` such rounds.
+    worst first, and the passes run again; at most ``max_rounds`` such rounds. The ``Zm``
+    of each round are chosen among every ``Zm`` smoothing started with, so one dropped at
+    an earlier, worse estimate comes back when the new one agrees with it; the rounds end
+    when the set no longer changes.
 
     Rounds drop measurements, so their costs are not comparable with each other or with
     the filter's. Every estimate (the filter's, and each round's) is therefore also scored
@@ -272,15 +304,14 @@ def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
     rep.common_costs.append(common())
     best = (rep.common_costs[0], "filter", None)  # (cost, label, (x, features, relative) or None)
     if robust:  # Zm that cannot be linearised (behind a camera) only distort the cost
-        rep.rejected_features += reject_outliers(filt, np.inf, None)[0]
+        reject_outliers(filt, np.inf, None)
     rises: list[str] = []
     for rnd in range(max_rounds + 1):
-        if rnd > 0:
-            n_f, n_r = reject_outliers(filt, feature_chi2, relative_chi2)
-            rep.rejected_features += n_f
+        if rnd > 0:  # the Zm inliers of this estimate among all (a dropped one may come back)
+            n_f, n_r = reject_outliers(filt, feature_chi2, relative_chi2, candidates=obs0)
             rep.rejected_relative += n_r
             if n_f == 0 and n_r == 0:
-                rep.reason += "; no measurement left above the gates"
+                rep.reason += "; no measurement left above the gates (the inliers no longer change)"
                 break
         _passes(filt, max_passes, tol, rep)
         c = common()
@@ -309,6 +340,7 @@ def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
         x, filt.store.features, filt.store.relative = best[2]
         filt.set_estimate(x)
         filt.relinearise()
+    rep.rejected_features = len(obs0) - len(filt.store.all_features())
     filt.invalidate()  # covariances: refactorise the undamped information on demand
     return rep
 
