@@ -79,7 +79,11 @@ def residual_noise_scale(filt: InformationFilter, features: FeatureObservations 
     float
         ``s > 0``; 1.0 when there are too few measurements to tell (``n <= 2 p``).
     """
-    obs, chi2 = _chi2(filt, features)
+    return _overall(*_chi2(filt, features))
+
+
+def _overall(obs: FeatureObservations, chi2: Array) -> float:
+    """:func:`residual_noise_scale` of ``obs`` from their ``chi2 (N,)``."""
     ok = np.isfinite(chi2)
     if not ok.any():
         return 1.0
@@ -180,7 +184,7 @@ def track_length_noise(filt: InformationFilter, features: FeatureObservations | 
         The measurements (default: every stored ``Zm``).
     """
     obs, chi2 = _chi2(filt, features)
-    overall = residual_noise_scale(filt, obs)
+    overall = _overall(obs, chi2)  # the residuals once, for the overall and the groups
     if not len(obs):
         return TrackLengthNoise(overall)
     ids, inv, counts = np.unique(obs.feature, return_inverse=True, return_counts=True)
