@@ -81,25 +81,21 @@ def test_passes_stop_when_damped_steps_only_crawl(monkeypatch):
     def run(costs_by_lam: dict[float, list[float]], max_passes: int = 5) -> sm.SmoothingReport:
         seq = {lam: list(v) for lam, v in costs_by_lam.items()}
         filt = SimpleNamespace(x=np.zeros(3), dim=3, priors=SimpleNamespace(scale=None), current_lam=0.0,
-                               at=100.0, relinearised=False)
+                               started=False)
 
-        def cost(f, *a, **k):  # the model cost: at the linearisation point, or after a step
-            if f.relinearised:
-                f.relinearised = False
-                return f.at
-            f.at = seq[f.current_lam].pop(0)
-            return f.at
+        def costs_at(f):  # the model cost: 100 at the start, then after each step by its damping
+            v = seq[f.current_lam].pop(0) if f.started else 100.0
+            f.started = True
+            return SimpleNamespace(model=lambda fused: v, measurement=lambda: 0.0)
 
         def relin(f):
-            f.relinearised = True
             return None
 
         def solve(f, x0, lam):
             f.current_lam = lam
             return x0 + 1.0
 
-        monkeypatch.setattr(sm, "model_cost", cost)
-        monkeypatch.setattr(sm, "measurement_cost", lambda f, *a, **k: 0.0)
+        monkeypatch.setattr(sm._Costs, "at", staticmethod(costs_at))
         monkeypatch.setattr(sm, "relinearise", relin)
         monkeypatch.setattr(sm, "_damped_solve", solve)
         rep = sm.SmoothingReport()

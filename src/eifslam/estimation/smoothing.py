@@ -110,16 +110,38 @@ def model_cost(filt: InformationFilter, fused: np.ndarray) -> float:
     small step of a round look like a rise; on kitti-07 the first undamped pass lowered
     the measurement cost while it raised the priors' from 2 790 to 98 786.)
     """
-    obs = filt.store.all_features()
-    total = 0.0
-    if len(obs) and np.any(fused):
-        chi2 = filt.linearise_features(obs.subset(fused), gate=False)[5]
-        total += float(np.sum(np.where(np.isfinite(chi2), chi2, 1e6)))
-    if filt.store.relative:
-        total += float(np.sum(_relative_chi2(filt, filt.store.relative)))
-    for lin in filt.prior_terms():
-        total += float(np.einsum("ni,nij,nj->", lin.innov, lin.W, lin.innov))
-    return total
+    return _Costs.at(filt).model(fused)
+
+
+@dataclass
+class _Costs:
+    """The parts of :func:`model_cost` and :func:`measurement_cost` at one ``x``, from one
+    linearisation of every stored ``Zm``: each ``Zm``'s normalised innovation squared
+    (``1e6`` where it cannot be linearised), the ``ZR``/``ZT`` and the priors' sums."""
+
+    zm: np.ndarray
+    relative: float
+    priors: float
+
+    @staticmethod
+    def at(filt: InformationFilter) -> "_Costs":
+        obs = filt.store.all_features()
+        zm = np.zeros(0)
+        if len(obs):
+            chi2 = filt.linearise_features(obs, gate=False)[5]
+            zm = np.where(np.isfinite(chi2), chi2, 1e6)
+        rel = float(np.sum(_relative_chi2(filt, filt.store.relative))) if filt.store.relative else 0.0
+        pri = sum(float(np.einsum("ni,nij,nj->", lin.innov, lin.W, lin.innov)) for lin in filt.prior_terms())
+        return _Costs(zm, rel, pri)
+
+    def model(self, fused: np.ndarray) -> float:
+        """:func:`model_cost` with ``fused (N,)`` the stored ``Zm`` the information holds."""
+        return float(np.sum(self.zm[fused])) + self.relative + self.priors if np.any(fused) \
+            else self.relative + self.priors
+
+    def measurement(self) -> float:
+        """:func:`measurement_cost` without gates, of every stored measurement."""
+        return float(np.sum(self.zm)) + self.relative
 
 
 def measurement_cost(filt: InformationFilter, feature_chi2: Gate | None = None,
@@ -351,22 +373,26 @@ def _passes(filt: InformationFilter, max_passes: int, tol: float, rep: Smoothing
 
     A pass is kept only when it lowers :func:`model_cost`, the cost of the terms its
     relinearised information holds (the measurement cost alone can fall while the priors'
-    part rises, and counts ``Zm`` the information leaves out)."""
+    part rises, and counts ``Zm`` the information leaves out). Both costs at one estimate
+    come from one linearisation (:class:`_Costs`), which the next pass reuses as its
+    starting cost: ``x`` does not change between them."""
     ref = 1.0 if filt.priors.scale is None else max(1.0, filt.priors.scale[2])
-    rep.costs.append(measurement_cost(filt))
+    here = _Costs.at(filt)
+    rep.costs.append(here.measurement())
     rep.converged = rep.stopped_by_cost = False
     lam = 0.0
     for _ in range(max_passes):
         before = filt.x.copy()
         fused = relinearise(filt)
-        cost = model_cost(filt, fused)
+        cost = here.model(fused)
         while True:
             try:
                 filt.x[:] = _damped_solve(filt, before, lam)
-                new_cost = model_cost(filt, fused) if np.all(np.isfinite(filt.x)) else np.inf
+                there = _Costs.at(filt) if np.all(np.isfinite(filt.x)) else None
             except EstimatorError:  # e.g. a feature left without information: damp harder
                 filt.x[:] = before
-                new_cost = np.inf
+                there = None
+            new_cost = there.model(fused) if there is not None else np.inf
             if new_cost <= cost or lam >= 1e4:
                 break
             lam = 1e-3 if lam == 0.0 else 10.0 * lam
@@ -379,8 +405,9 @@ def _passes(filt: InformationFilter, max_passes: int, tol: float, rep: Smoothing
                           f"(lam up to 1e4): the linearised step leaves the region where the model is "
                           f"linear; kept the estimate before it")
             break
+        here = there
         lam = lam / 10.0 if lam > 1e-3 else 0.0
-        rep.costs.append(measurement_cost(filt))
+        rep.costs.append(here.measurement())
         norm = float(np.max(np.abs(filt.x - before))) if filt.dim else 0.0
         rep.step_norms.append(norm)
         small = cost - new_cost <= cost_tol * cost
