@@ -73,7 +73,8 @@ def test_the_gate_is_never_loosened():
 def test_passes_stop_when_damped_steps_only_crawl(monkeypatch):
     """A pass whose undamped step raises the cost and whose damped step lowers it by less
     than 1% ends the passes (another would crawl the same way); a damped step that lowers
-    it by more goes on; an undamped one below 1% is convergence."""
+    it by more goes on, the next pass trying a tenth of its damping (Marquardt's schedule,
+    down to ``LAM_MIN``, then undamped); an undamped one below 1% is convergence."""
     from types import SimpleNamespace
 
     from eifslam.estimation import smoothing as sm
@@ -81,7 +82,7 @@ def test_passes_stop_when_damped_steps_only_crawl(monkeypatch):
     def run(costs_by_lam: dict[float, list[float]], max_passes: int = 5) -> sm.SmoothingReport:
         seq = {lam: list(v) for lam, v in costs_by_lam.items()}
         filt = SimpleNamespace(x=np.zeros(3), dim=3, priors=SimpleNamespace(scale=None), current_lam=0.0,
-                               started=False)
+                               started=False, tried=[])
 
         def costs_at(f):  # the model cost: 100 at the start, then after each step by its damping
             v = seq[f.current_lam].pop(0) if f.started else 100.0
@@ -92,7 +93,8 @@ def test_passes_stop_when_damped_steps_only_crawl(monkeypatch):
             return None
 
         def solve(f, x0, lam):
-            f.current_lam = lam
+            f.current_lam = float(f"{lam:.3g}")  # 1e-4 / 10 is 1.0000000000000001e-05
+            f.tried.append(f.current_lam)
             return x0 + 1.0
 
         monkeypatch.setattr(sm._Costs, "at", staticmethod(costs_at))
@@ -100,12 +102,15 @@ def test_passes_stop_when_damped_steps_only_crawl(monkeypatch):
         monkeypatch.setattr(sm, "_damped_solve", solve)
         rep = sm.SmoothingReport()
         sm._passes(filt, max_passes, 1e-12, rep)
+        rep.tried = filt.tried
         return rep
 
     crawl = run({0.0: [101.0] * 5, 1e-3: [100.5] * 5, 1e-2: [99.6, 99.3, 99.0, 98.7, 98.4]})
     assert crawl.passes == 1 and not crawl.converged and crawl.reason.startswith("stopped: the last pass, damped")
-    useful = run({0.0: [101.0, 84.95], 1e-3: [100.5, 85.0], 1e-2: [90.0]})
-    assert useful.passes == 3 and useful.converged and "undamped" in useful.reason
+    useful = run({0.0: [101.0, 69.95], 1e-3: [100.5, 85.0], 1e-2: [90.0], 1e-4: [80.0], 1e-5: [75.0],
+                  1e-6: [70.0]}, max_passes=8)
+    assert useful.passes == 6 and useful.converged and "undamped" in useful.reason
+    assert useful.tried == [0.0, 1e-3, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 0.0]
 
 
 def _track_lengths(filt):

@@ -26,6 +26,10 @@ from .scale import recover_scale, rescale  # noqa: F401  (re-exported)
 #: a ``Zm`` gate: one normalised-innovation-squared bound, or one per feature
 Gate = float | FeatureGate
 
+#: the smallest Levenberg-Marquardt damping (fraction of ``diag(I)``) a pass uses; below it
+#: the pass is plain Gauss-Newton
+LAM_MIN = 1e-6
+
 
 def _gate_of(gate: Gate, obs: FeatureObservations) -> float | np.ndarray:
     """The gate of each of ``obs`` (a float, or ``(N,)`` for a per-feature gate)."""
@@ -259,7 +263,9 @@ def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
     paper does not need (its filter answer was close to the optimum): if a pass raises the
     measurement cost (:func:`measurement_cost`), the step is damped Levenberg-Marquardt
     style (``I + lam diag(I)``, ``lam`` grown tenfold up to 1e4) and, if still no better,
-    smoothing stops at the previous estimate (``report.reason`` says so).
+    smoothing stops at the previous estimate (``report.reason`` says so). After a damped
+    pass the next one starts from a tenth of its ``lam`` (Marquardt's schedule), down to
+    :data:`LAM_MIN`, below which the passes are undamped again.
 
     Robust smoothing (``feature_chi2`` or ``relative_chi2`` given): after the passes,
     :func:`reject_outliers` drops the measurements the smoothed estimate contradicts,
@@ -406,7 +412,10 @@ def _passes(filt: InformationFilter, max_passes: int, tol: float, rep: Smoothing
                           f"linear; kept the estimate before it")
             break
         here = there
-        lam = lam / 10.0 if lam > 1e-3 else 0.0
+        # Marquardt's schedule: the next pass tries a tenth of the damping that worked;
+        # below LAM_MIN it is dropped (Gauss-Newton). Dropping it at once after a damped
+        # pass made the next undamped step fail again on kitti-07 (two factorisations a pass)
+        lam = lam / 10.0 if lam >= 10.0 * LAM_MIN else 0.0
         rep.costs.append(here.measurement())
         norm = float(np.max(np.abs(filt.x - before))) if filt.dim else 0.0
         rep.step_norms.append(norm)
