@@ -79,7 +79,7 @@ def test_passes_stop_when_damped_steps_only_crawl(monkeypatch):
 
     from eifslam.estimation import smoothing as sm
 
-    def run(costs_by_lam: dict[float, list[float]], max_passes: int = 5) -> sm.SmoothingReport:
+    def run(costs_by_lam: dict[float, list[float]], max_passes: int = 5) -> tuple[sm.SmoothingReport, list[float]]:
         seq = {lam: list(v) for lam, v in costs_by_lam.items()}
         filt = SimpleNamespace(x=np.zeros(3), dim=3, priors=SimpleNamespace(scale=None), current_lam=0.0,
                                started=False, tried=[])
@@ -102,15 +102,14 @@ def test_passes_stop_when_damped_steps_only_crawl(monkeypatch):
         monkeypatch.setattr(sm, "_damped_solve", solve)
         rep = sm.SmoothingReport()
         sm._passes(filt, max_passes, 1e-12, rep)
-        rep.tried = filt.tried
-        return rep
+        return rep, filt.tried  # the dampings tried, in order
 
-    crawl = run({0.0: [101.0] * 5, 1e-3: [100.5] * 5, 1e-2: [99.6, 99.3, 99.0, 98.7, 98.4]})
+    crawl, _ = run({0.0: [101.0] * 5, 1e-3: [100.5] * 5, 1e-2: [99.6, 99.3, 99.0, 98.7, 98.4]})
     assert crawl.passes == 1 and not crawl.converged and crawl.reason.startswith("stopped: the last pass, damped")
-    useful = run({0.0: [101.0, 69.95], 1e-3: [100.5, 85.0], 1e-2: [90.0], 1e-4: [80.0], 1e-5: [75.0],
-                  1e-6: [70.0]}, max_passes=8)
+    useful, tried = run({0.0: [101.0, 69.95], 1e-3: [100.5, 85.0], 1e-2: [90.0], 1e-4: [80.0], 1e-5: [75.0],
+                         1e-6: [70.0]}, max_passes=8)
     assert useful.passes == 6 and useful.converged and "undamped" in useful.reason
-    assert useful.tried == [0.0, 1e-3, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 0.0]
+    assert tried == [0.0, 1e-3, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 0.0]
 
 
 def _track_lengths(filt):
