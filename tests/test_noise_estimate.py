@@ -106,10 +106,12 @@ def test_passes_stop_when_damped_steps_only_crawl(monkeypatch):
 
     crawl, _ = run({0.0: [101.0] * 5, 1e-3: [100.5] * 5, 1e-2: [99.6, 99.3, 99.0, 98.7, 98.4]})
     assert crawl.passes == 1 and not crawl.converged and crawl.reason.startswith("stopped: the last pass, damped")
+    assert crawl.dampings == [1e-2]
     useful, tried = run({0.0: [101.0, 69.95], 1e-3: [100.5, 85.0], 1e-2: [90.0], 1e-4: [80.0], 1e-5: [75.0],
                          1e-6: [70.0]}, max_passes=8)
     assert useful.passes == 6 and useful.converged and "undamped" in useful.reason
     assert tried == [0.0, 1e-3, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 0.0]
+    assert [float(f"{d:.3g}") for d in useful.dampings] == [1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 0.0]  # the steps taken
 
 
 def _track_lengths(filt):

@@ -235,6 +235,11 @@ def test_finish_follows_the_mode_and_old_sessions_are_refused(tmp_path):
     fin = slam.finish()
     assert fin.failures == [] and fin.smoothing is not None and slam.smoothing is fin.smoothing
     assert fin.ba is None
+    from eifslam.evaluation.outputs import write_outputs
+
+    sm = write_outputs(slam, tmp_path / "out", 1.0, None, html=False)["smoothing"]  # one damping per pass
+    assert sm["passes"] == len(sm["step_norms"]) == len(sm["dampings"]) >= 1
+    assert all(d >= 0.0 for d in sm["dampings"])
     old = tmp_path / "old.pkl"
     old.write_bytes(pickle.dumps({"version": 1, "slam": slam.config}))
     with pytest.raises(EifslamError, match="pickled sessions"):

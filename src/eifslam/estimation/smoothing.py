@@ -46,6 +46,9 @@ class SmoothingReport:
         Gauss-Newton passes run (all rounds).
     step_norms : list of float
         Largest change of a state entry in each pass (state units; 0 for an undone pass).
+    dampings : list of float
+        Levenberg-Marquardt ``lam`` of each pass's step (0: undamped Gauss-Newton; 1e4
+        for a pass undone because even that raised the cost).
     costs : list of float
         Measurement cost (:func:`measurement_cost`, the current measurement set) at the
         start of each round and after each accepted pass.
@@ -77,6 +80,7 @@ class SmoothingReport:
 
     passes: int = 0
     step_norms: list[float] = field(default_factory=list)
+    dampings: list[float] = field(default_factory=list)
     costs: list[float] = field(default_factory=list)
     converged: bool = False
     stopped_by_cost: bool = False
@@ -403,6 +407,7 @@ def _passes(filt: InformationFilter, max_passes: int, tol: float, rep: Smoothing
                 break
             lam = 1e-3 if lam == 0.0 else 10.0 * lam
         rep.passes += 1
+        rep.dampings.append(lam)
         if new_cost > cost:
             filt.x[:] = before
             rep.step_norms.append(0.0)

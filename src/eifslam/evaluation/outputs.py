@@ -94,7 +94,8 @@ def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
     )
     if slam.smoothing is not None:
         sm = slam.smoothing
-        rep["smoothing"] = dict(passes=sm.passes, step_norms=sm.step_norms, common_costs=sm.common_costs,
+        rep["smoothing"] = dict(passes=sm.passes, step_norms=sm.step_norms, dampings=sm.dampings,
+                                common_costs=sm.common_costs,
                                 kept=sm.kept, reason=sm.reason, rejected_features=sm.rejected_features,
                                 rejected_relative=sm.rejected_relative, noise_scale=sm.noise_scale,
                                 noise_groups=[g.to_dict() for g in sm.noise_groups])
