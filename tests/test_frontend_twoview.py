@@ -176,6 +176,23 @@ def test_ut_config_gives_similar_covariance_to_fast():
     assert rel_fro < 0.2
 
 
+@pytest.mark.parametrize("method", ["fast", "ut"])
+def test_a_pair_given_twice_is_one_measurement(method):
+    """SIFT's orientation twins give the same pixel pair twice; the relative pose's
+    covariance counts it once: the same covariance as without the copies (two-sided: a
+    covariance that counted them would be about 1/1.5 of it here)."""
+    from eifslam.frontend.relative_pose import estimate_relative_pose
+
+    s = make_two_view_scene(np.random.default_rng(5), "general", n_points=80)
+    cfg = FrontEndConfig(covariance=method)
+    one = estimate_relative_pose(s.uv_i, s.uv_j, s.camera, cfg).measurement
+    dup = np.r_[np.arange(80), np.arange(0, 80, 2)]  # every second pair twice
+    two = estimate_relative_pose(s.uv_i[dup], s.uv_j[dup], s.camera, cfg).measurement
+    ratio = np.linalg.det(two.cov) / np.linalg.det(one.cov)
+    assert 0.95 < ratio ** (1 / 5) < 1.05, ratio
+    assert np.allclose(two.cov, one.cov, rtol=0.05, atol=1e-12)
+
+
 def test_pure_rotation_has_no_parallax():
     from eifslam.frontend.relative_pose import estimate_relative_pose
 
