@@ -201,7 +201,7 @@ def _fail(reason: str, n_common: int, t0: float, **kw) -> RelativePoseResult:
 def _covariance(R, t, ui, uj, K, J, config: FrontEndConfig) -> Array:
     # a pixel pair given twice is one measurement, not two: SIFT gives a keypoint one copy
     # per dominant orientation, and both copies become tracks with the same pixels
-    # (docs/frontend.md, "SIFT's orientation twins"); counted twice, they halve its variance
+    # (docs/frontend.md, "SIFT's orientation twins"); counted twice, its information doubles
     _, first = np.unique(np.c_[ui, uj], axis=0, return_index=True)
     first.sort()
     ui, uj, J = ui[first], uj[first], J[first]
