@@ -143,9 +143,8 @@ class _Costs:
         return _Costs(zm, rel, pri)
 
     def model(self, fused: np.ndarray) -> float:
-        """:func:`model_cost` with ``fused (N,)`` the stored ``Zm`` the information holds."""
-        return float(np.sum(self.zm[fused])) + self.relative + self.priors if np.any(fused) \
-            else self.relative + self.priors
+        """:func:`model_cost` with ``fused (N,)`` bool, the stored ``Zm`` the information holds."""
+        return float(np.sum(self.zm[fused])) + self.relative + self.priors
 
     def measurement(self) -> float:
         """:func:`measurement_cost` without gates, of every stored measurement."""
