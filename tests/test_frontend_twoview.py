@@ -191,6 +191,54 @@ def test_a_pair_given_twice_is_one_measurement(method):
     ratio = np.linalg.det(two.cov) / np.linalg.det(one.cov)
     assert 0.95 < ratio ** (1 / 5) < 1.05, ratio
     assert np.allclose(two.cov, one.cov, rtol=0.05, atol=1e-12)
+    assert two.n_inliers == one.n_inliers  # and RANSAC's consensus counts it once
+
+
+def _leverage_scene(seed: int, shift_px: float):
+    """200 correspondences in the image's centre and 3 in its corner: the corner ones carry
+    much of the pose's information. Each corner pixel in image *j* is moved ``shift_px``
+    across its epipolar line (a mismatch), and the pose refined on all of them, as if RANSAC
+    had landed on the pose the mismatches bend."""
+    rng = np.random.default_rng(seed)
+    s = make_two_view_scene(rng, "general", n_points=3000, depth=(4.0, 12.0), rotation_deg=5.0)
+    ui, uj = s.noisy(rng, 0.3)
+    centre = (np.abs(s.uv_i[:, 0] - 320) < 90) & (np.abs(s.uv_i[:, 1] - 240) < 70)
+    corner = (s.uv_i[:, 0] < 80) & (s.uv_i[:, 1] < 80)
+    sel = np.r_[np.flatnonzero(centre)[:200], np.flatnonzero(corner)[:3]]
+    ui, uj, K = ui[sel], uj[sel].copy(), s.camera.K
+    for k in range(200, 203):
+        eps = 1e-4
+        g = np.array([(sampson_residuals(s.R_ij, s.t_ij, ui[k:k + 1], uj[k:k + 1] + eps * e, K)[0]
+                       - sampson_residuals(s.R_ij, s.t_ij, ui[k:k + 1], uj[k:k + 1], K)[0]) / eps
+                      for e in np.eye(2)])
+        uj[k] += shift_px * g / np.linalg.norm(g)
+    R, t, _ = refine_pose(s.R_ij, s.t_ij, ui, uj, K, 10)
+    return s, ui, uj, R, t
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_mismatches_of_high_leverage_are_dropped(seed):
+    """Three mismatches in the corner bend the pose until they pass the inlier test (their
+    residuals under 1 px); checked at the pose of the other correspondences they fail it,
+    are dropped, and the pose moves back towards the truth. Correct corner points stay and
+    leave the pose as it was."""
+    from eifslam.frontend.relative_pose import confirm_leveraged
+
+    cfg = FrontEndConfig()
+    s, ui, uj, R, t = _leverage_scene(seed, 2.0)
+    bi, bj = s.camera.bearing(ui), s.camera.bearing(uj)
+    assert np.all(np.abs(sampson_residuals(R, t, ui[200:], uj[200:], s.camera.K)) < cfg.ransac_threshold_px)
+    R2, t2, inl = confirm_leveraged(R, t, np.ones(203, bool), ui, uj, bi, bj, s.camera.K, cfg)
+    assert np.array_equal(np.flatnonzero(~inl), [200, 201, 202])
+    before = np.linalg.norm(pose_error(s.R_ij, s.t_ij, R, t))
+    after = np.linalg.norm(pose_error(s.R_ij, s.t_ij, R2, t2))
+    assert after < 0.5 * before, (before, after)
+
+    s, ui, uj, R, t = _leverage_scene(seed, 0.0)
+    bi, bj = s.camera.bearing(ui), s.camera.bearing(uj)
+    R2, t2, inl = confirm_leveraged(R, t, np.ones(203, bool), ui, uj, bi, bj, s.camera.K, cfg)
+    assert inl.all()
+    assert np.array_equal(R2, R) and np.array_equal(t2, t)
 
 
 def test_pure_rotation_has_no_parallax():

@@ -4,8 +4,11 @@ Five-point essential matrix in RANSAC and the cheirality test (OpenCV), an optio
 Gauss-Newton refinement on the inliers' Sampson error; on a wide pair whose inliers a
 homography mostly explains, the homography's decompositions as further hypotheses (refined
 by Levenberg-Marquardt; one replaces the essential matrix's pose only with significantly
-more inliers, :func:`best_supported_pose`); a parallax check on the pose that is kept; and
-the covariance (first order or unscented transform, :mod:`eifslam.frontend.uncertainty`).
+more inliers, :func:`best_supported_pose`); the inliers that carry much of the pose's
+information checked against the pose the others give (:func:`confirm_leveraged`); a parallax
+check on the pose that is kept; and the covariance (first order or unscented transform,
+:mod:`eifslam.frontend.uncertainty`). A pixel pair given twice (SIFT's orientation twins) is
+one correspondence.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from .uncertainty import first_order_covariance, is_valid_covariance, unscented_
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["best_supported_pose", "estimate_relative_pose", "pose_from_essential"]
+__all__ = ["best_supported_pose", "confirm_leveraged", "estimate_relative_pose", "pose_from_essential"]
 
 #: refinement of a homography's pose (:func:`best_supported_pose`): at most this many rounds of
 #: re-classified inliers, of this many Levenberg-Marquardt steps each
@@ -62,6 +65,10 @@ _MAX_REFINE_STEP_DEG = 5.0
 _PLANE_PARALLAX_DEG = 5.0
 #: level of the test that a homography's pose explains more correspondences (:func:`_significantly_more`)
 _SWITCH_ALPHA = 0.05
+#: an inlier whose leverage (its share of the pose's information, mean 5/n) is above this
+#: many times the mean is checked against the pose of the others (:func:`confirm_leveraged`);
+#: 2 is the usual flag for high leverage in regression diagnostics (Hoaglin & Welsch, 1978)
+_LEVERAGE_FLAG = 2.0
 
 
 def pose_from_essential(
@@ -198,13 +205,70 @@ def _fail(reason: str, n_common: int, t0: float, **kw) -> RelativePoseResult:
                               timings_ms=ms, **kw)
 
 
+def confirm_leveraged(
+    R: Array, t: Array, inl: NDArray[np.bool_], ui: Array, uj: Array, bi: Array, bj: Array, K: Array,
+    config: FrontEndConfig,
+) -> tuple[Array, Array, NDArray[np.bool_]]:
+    """Inliers of high leverage kept only if the pose of the other inliers agrees with them.
+
+    A correspondence with a large share of the pose's information (its leverage
+    ``h = J_k (JᵀJ)⁻¹ J_kᵀ``, which sums to 5 over the inliers) pulls the pose towards itself,
+    so its own residual is small even when it is wrong: a few mismatches together, alone in
+    a part of the image, can pass the inlier test at the pose they bend and shrink the
+    covariance severalfold (strecha-herzjesu-p25's pair 19-20: three wrong matches with
+    leverage 0.3 each, docs/frontend.md). Inliers with leverage above
+    :data:`_LEVERAGE_FLAG` times the mean are classified again, by the same residual and
+    cheirality test, at the pose refined on the others; those that fail are dropped and the
+    pose is refined on the rest. Only on wide pairs (median parallax at least
+    :data:`_PLANE_PARALLAX_DEG`): on a narrow one the high-leverage inliers are what fixes
+    the translation's direction, and the others' pose can be anywhere along it.
+
+    Parameters
+    ----------
+    R : (3, 3) ``R_ij``; t : (3,) unit ``t_ij``
+        The refined pose.
+    inl : (N,) bool
+        Its inliers.
+    ui, uj : (N, 2)
+        Undistorted pixels in images *i* and *j*.
+    bi, bj : (N, 3)
+        Their unit bearings, camera frames *i* and *j*.
+    K : (3, 3)
+    config : FrontEndConfig
+        Uses ``refine_iterations``, ``ransac_threshold_px``, ``min_inliers``.
+
+    Returns
+    -------
+    R : (3, 3); t : (3,) unit; inliers : (N,) bool
+        Unchanged when every flagged inlier agrees (or too few are left to test them).
+    """
+    idx = np.flatnonzero(inl)
+    n = len(idx)
+    if n < 2 * config.min_inliers or median_parallax_deg(R, bi[idx], bj[idx]) < _PLANE_PARALLAX_DEG:
+        return R, t, inl  # a narrow pair: the others alone do not fix the translation's direction
+    J = sampson_jacobian(R, t, ui[idx], uj[idx], K)[1]
+    H = J.T @ J
+    if not np.all(np.isfinite(H)) or np.linalg.cond(H) > 1e12:
+        return R, t, inl
+    h = np.einsum("ij,jk,ik->i", J, np.linalg.inv(H), J)
+    flag = h > _LEVERAGE_FLAG * 5.0 / n
+    if not flag.any() or n - flag.sum() < config.min_inliers:
+        return R, t, inl
+    R2, t2, _ = refine_pose(R, t, ui[idx[~flag]], uj[idx[~flag]], K, config.refine_iterations)
+    if np.degrees(np.linalg.norm(pose_error(R, t, R2, t2))) > _MAX_REFINE_STEP_DEG:
+        return R, t, inl  # diverged without them: they cannot be checked
+    test = idx[flag]
+    agree = (np.abs(sampson_residuals(R2, t2, ui[test], uj[test], K)) < config.ransac_threshold_px) \
+        & cheirality_mask(R2, t2, bi[test], bj[test])
+    if agree.all():
+        return R, t, inl
+    kept = inl.copy()
+    kept[test[~agree]] = False
+    R3, t3, _ = refine_pose(R2, t2, ui[kept], uj[kept], K, config.refine_iterations)
+    return R3, t3, kept
+
+
 def _covariance(R, t, ui, uj, K, J, config: FrontEndConfig) -> Array:
-    # a pixel pair given twice is one measurement, not two: SIFT gives a keypoint one copy
-    # per dominant orientation, and both copies become tracks with the same pixels
-    # (docs/frontend.md, "SIFT's orientation twins"); counted twice, its information doubles
-    _, first = np.unique(np.c_[ui, uj], axis=0, return_index=True)
-    first.sort()
-    ui, uj, J = ui[first], uj[first], J[first]
     if config.covariance == "fast":
         return first_order_covariance(J, config.sigma_px)
     n = len(ui)
@@ -247,6 +311,16 @@ def estimate_relative_pose(
     ui = np.asarray(uv_i, np.float64).reshape(-1, 2)
     uj = np.asarray(uv_j, np.float64).reshape(-1, 2)
     ids = np.asarray(track_ids if track_ids is not None else np.zeros(0), np.int64)
+    # a pixel pair given twice is one correspondence, not two: SIFT gives a keypoint one copy
+    # per dominant orientation, and both copies become tracks with the same pixels
+    # (docs/frontend.md, "SIFT's orientation twins"); counted twice, it would double its
+    # weight in RANSAC's consensus and its information in the covariance
+    _, first = np.unique(np.c_[ui, uj], axis=0, return_index=True)
+    if len(first) < len(ui):
+        first.sort()
+        if len(ids) == len(ui):
+            ids = ids[first]
+        ui, uj = ui[first], uj[first]
     n = len(ui)
     if n < max(config.min_common, 5):
         return _fail(Reason.TOO_FEW_COMMON, n, t0)
@@ -269,6 +343,8 @@ def estimate_relative_pose(
     if inl.sum() < config.min_inliers:
         return _fail(Reason.TOO_FEW_INLIERS, n, t0, n_inliers=int(inl.sum()), parallax_deg=residual)
     R, t, inl = best_supported_pose(R, t, inl, ui, uj, bi_all, bj_all, K, config)
+    if config.refine:
+        R, t, inl = confirm_leveraged(R, t, inl, ui, uj, bi_all, bj_all, K, config)
     parallax = median_parallax_deg(R, bi_all[inl], bj_all[inl])
     if parallax < config.min_parallax_deg:
         return _fail(Reason.NO_PARALLAX, n, t0, n_inliers=int(inl.sum()), parallax_deg=parallax)
