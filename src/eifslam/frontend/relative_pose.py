@@ -225,22 +225,16 @@ def confirm_leveraged(
 
     Parameters
     ----------
-    R : (3, 3) ``R_ij``; t : (3,) unit ``t_ij``
-        The refined pose.
-    inl : (N,) bool
-        Its inliers.
-    ui, uj : (N, 2)
-        Undistorted pixels in images *i* and *j*.
-    bi, bj : (N, 3)
-        Their unit bearings, camera frames *i* and *j*.
-    K : (3, 3)
+    R, t, inl, ui, uj, bi, bj, K
+        As :func:`best_supported_pose`, with ``R, t`` the refined pose and ``inl`` its inliers.
     config : FrontEndConfig
         Uses ``refine_iterations``, ``ransac_threshold_px``, ``min_inliers``.
 
     Returns
     -------
     R : (3, 3); t : (3,) unit; inliers : (N,) bool
-        Unchanged when every flagged inlier agrees (or too few are left to test them).
+        Unchanged when every flagged inlier agrees, on a narrow pair, or when too few are
+        left to test them.
     """
     idx = np.flatnonzero(inl)
     n = len(idx)
