@@ -41,6 +41,10 @@ def test_ekf_estimate_and_covariance_agree_with_eif():
     assert np.abs(eif.features()[1] - ekf.features()[1]).max() < 1e-2
     C1, C2 = eif.pose_covariance(7), ekf.pose_covariance(7)
     assert np.allclose(np.diag(C1), np.diag(C2), rtol=1e-2)
+    ids = ekf.features()[0][:4]
+    F = ekf.feature_covariances(ids + [ids[0], -5])  # a repeat and an unknown id
+    assert np.array_equal(F[:4], np.stack([ekf.feature_covariance(t) for t in ids]))
+    assert np.array_equal(F[4], F[0]) and np.isnan(F[5]).all()
 
 
 def test_ekf_update_reduces_only_the_touched_uncertainty():

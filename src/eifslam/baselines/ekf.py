@@ -253,6 +253,17 @@ class DenseEKF:
         """3x3 covariance of a map feature."""
         return self.covariance(self.layout.feature_columns([track_id])[0])
 
+    def feature_covariances(self, track_ids) -> Array:
+        """``(N, 3, 3)`` covariances of map features (repeats allowed), read from ``P``;
+        NaN for an id not in the state (as :meth:`InformationFilter.feature_covariances`)."""
+        ids = np.asarray(track_ids, np.int64).reshape(-1)
+        out = np.full((len(ids), 3, 3), np.nan)
+        known = self.layout.has_features(ids) if len(ids) else np.zeros(0, bool)
+        if known.any():
+            cols = self.layout.feature_columns(ids[known])
+            out[known] = self.P[cols[:, :, None], cols[:, None, :]]
+        return out
+
     def information_matrix(self) -> sp.csc_matrix:
         """``P^-1`` as a sparse matrix ``(dim, dim)`` (dense inverse, ``O(n^3)``; for outputs)."""
         if not self.dim:

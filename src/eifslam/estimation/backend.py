@@ -102,5 +102,10 @@ class Backend(Protocol):
         """6x6 covariance of ``[p, dtheta]`` of a pose (``dtheta`` in rad)."""
         ...
 
+    def feature_covariances(self, track_ids) -> Array:
+        """``(N, 3, 3)`` marginal covariances of map features where they are cheap, NaN
+        elsewhere (the localisation's cut, :func:`~eifslam.estimation.localisation.localise_pose`)."""
+        ...
+
 
 __all__ = ["Backend"]

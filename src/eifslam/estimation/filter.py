@@ -421,8 +421,9 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
 
         Incremental recovery: from the active window as last recovered (exact marginals,
         :meth:`~eifslam.estimation.window.ActiveWindow.feature_covariances`), NaN for a
-        feature outside the window or not in the state. Full recovery: from the cached
-        factorisation when there is one, else NaN.
+        feature outside the window or not in the state. Full recovery: from the
+        factorisation of ``I`` the recovery caches (made when there is none, e.g. after
+        a loaded session, so that the answer does not depend on what was cached).
 
         Parameters
         ----------
@@ -443,11 +444,9 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         cols = self.layout.feature_columns(uniq)
         if self.incremental is not None:
             C = self.incremental.feature_covariances(cols[:, 0])
-        elif self._factor is not None:
-            full = self._factor.covariance(cols.ravel())
+        else:  # the recovery's own factorisation, made again when missing (after a load)
+            full = self.factor().covariance(cols.ravel())
             C = np.stack([full[3 * n:3 * n + 3, 3 * n:3 * n + 3] for n in range(len(uniq))])
-        else:
-            return out
         out[known] = C[inv.reshape(-1)]
         return out
 

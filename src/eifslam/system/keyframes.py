@@ -205,7 +205,7 @@ class Keyframes:
         ids, uv = np.asarray(ids, np.int64)[known], uv[known]
         X = filt.x[filt.layout.feature_columns(ids)]
         sol = localise_pose(self.camera, p0, q0, X, uv, min_inliers=sysc.min_map_features,
-                            inlier_px=sysc.inlier_radius_px)
+                            inlier_px=sysc.inlier_radius_px, X_cov=lambda idx: filt.feature_covariances(ids[idx]))
         if sol is None:
             return None
         p, q, inl = sol

@@ -10,6 +10,7 @@ supports, adds the pose and fuses, then hands the frame to the :class:`~.mapping
 from __future__ import annotations
 
 import time
+from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -176,13 +177,16 @@ class Tracker:
         return None, last
 
     # -- placing a frame ------------------------------------------------------------
-    def _known_map(self, k: int) -> tuple[NDArray[np.bool_], Array, Array]:
-        """Which of frame *k*'s ``Zm`` are of known features, their positions and pixels."""
+    def _known_map(self, k: int) -> tuple[NDArray[np.bool_], Array, Array, Callable[[NDArray[np.int64]], Array]]:
+        """Which of frame *k*'s ``Zm`` are of known features, their positions and pixels,
+        and their marginal covariances on demand (``cov(idx) -> (m, 3, 3)``, NaN where the
+        filter has none cheaply, :meth:`InformationFilter.feature_covariances`)."""
         filt = self.filter
         ids, uv = self.frontend.map_observations(k)
         known = filt.layout.has_features(ids)
         X = filt.x[filt.layout.feature_columns(ids[known])] if known.any() else np.zeros((0, 3))
-        return known, X, uv[known]
+        ids_known = np.asarray(ids, np.int64)[known]
+        return known, X, uv[known], lambda idx: filt.feature_covariances(ids_known[idx])
 
     def localise_from_map(self, k: int, timings: dict[str, float], guess: tuple[Array, Array] | None = None,
                           min_features: int | None = None, recover: bool = True) -> bool:
@@ -196,12 +200,12 @@ class Tracker:
         if filt.layout.n_poses < 2 or filt.layout.n_features == 0:
             return False
         t0 = time.perf_counter()
-        known, X, uv = self._known_map(k)
+        known, X, uv, P = self._known_map(k)
         n_min = self.config.system.min_map_features if min_features is None else int(min_features)
         if known.sum() < n_min:
             return False
         p0, q0 = filt.pose(self.nearest_known(k)[0]) if guess is None else guess
-        sol = localise_pose(self.camera, p0, q0, X, uv, min_inliers=min(n_min, 12))
+        sol = localise_pose(self.camera, p0, q0, X, uv, min_inliers=min(n_min, 12), X_cov=P)
         if sol is None:
             return False
         p, q, _ = sol
@@ -218,7 +222,7 @@ class Tracker:
         filt, sysc = self.filter, self.config.system
         rp = rpr.measurement
         t0 = time.perf_counter()
-        known, Xk, uvk = self._known_map(k)
+        known, Xk, uvk, Pk = self._known_map(k)
         p_i, q_i = filt.pose(rp.i)
         first_step = filt.layout.n_poses == 1
         init = pose_from_relative(p_i, q_i, rp, self.camera, Xk, uvk,
@@ -226,7 +230,7 @@ class Tracker:
         p_k, q_k, step = init
         use_relative, refined, cov_k = True, False, None
         if known.sum() >= sysc.min_map_features:  # a better linearisation point: refine on the known map
-            sol = localise_pose(self.camera, p_k, q_k, Xk, uvk)
+            sol = localise_pose(self.camera, p_k, q_k, Xk, uvk, X_cov=Pk)
             frac = sol[2].mean() if sol is not None else 0.0
             if sol is not None and agrees(p_i, p_k, q_k, sol, max_rot_deg=sysc.agree_rotation_deg,
                                           max_dir_deg=sysc.agree_direction_deg):
@@ -329,7 +333,7 @@ class Tracker:
                 return False, None
             # the relative pose is a starting point only: with a narrow field of view its
             # rotation can be degrees off, the map's features fix it
-            known, Xk, uvk = self._known_map(j)
+            known, Xk, uvk, _ = self._known_map(j)
             p_i, q_i = self.filter.pose(wide.reference)
             p_k, q_k, _ = pose_from_relative(p_i, q_i, rpr.measurement, self.camera, Xk, uvk,
                                              default_step=self._last_step)
