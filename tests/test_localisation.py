@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from scipy.stats import chi2
 
@@ -97,3 +99,35 @@ def test_a_point_within_its_own_uncertainty_keeps_its_weight():
     sol = localise_pose(cam, p_true, q_true, X, uv, X_cov=lambda idx: asked.append(idx) or P[idx], tol_px2=0.0)
     assert np.array_equal(np.unique(np.concatenate(asked)), [0])
     assert np.array_equal(sol[0], sols["uncertain"][0]) and np.array_equal(sol[1], sols["uncertain"][1])
+
+
+def test_a_relative_pose_the_map_cannot_start_from_is_not_fused_where_it_points():
+    """A relative pose turned half round (camera looking back) gives a guess from which no
+    map point is in front: the localisation cannot start there, so the frame is
+    localised from the nearest known pose, the map contradicts the relative pose, and
+    that is not fused. Before, the frame was fused at the guess, 180 degrees off."""
+    from eifslam.sim.frontend import SyntheticFrontEnd
+    from eifslam.sim.synthetic import corridor_scene
+    from eifslam.system.slam import Slam, TrackingState
+
+    frames, bad = 10, 8
+    sc = corridor_scene(frames, np.random.default_rng(3))
+    fe = SyntheticFrontEnd(sc, 3, sigma_px=0.5)
+    slam = Slam(sc.camera, fe.slam_config(system={"mode": "filter", "keyframes": False}), frontend=fe)
+    honest = fe.relative_pose
+
+    def turned(i: int, j: int):
+        r = honest(i, j)
+        if j == bad and r.ok:
+            rp = r.measurement
+            q = quat_multiply(rp.q_ij, quat_exp(np.array([0.0, np.pi, 0.0])))
+            return dataclasses.replace(r, measurement=dataclasses.replace(rp, q_ij=q))
+        return r
+
+    fe.relative_pose = turned
+    for k in range(frames):
+        assert slam.track(k, float(k)).state is TrackingState.TRACKING or k == 0
+    assert any(rp.j == bad for rp in slam.tracker.rejected_relative)
+    _, q = slam.filter.pose(bad)
+    turn = np.degrees(np.linalg.norm(quat_log(quat_multiply(quat_conjugate(sc.quats[bad]), q))))
+    assert turn < 1.0

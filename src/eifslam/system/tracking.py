@@ -231,6 +231,11 @@ class Tracker:
         use_relative, refined, cov_k = True, False, None
         if known.sum() >= sysc.min_map_features:  # a better linearisation point: refine on the known map
             sol = localise_pose(self.camera, p_k, q_k, Xk, uvk, X_cov=Pk)
+            if sol is None:  # the map does not converge from the relative pose's guess: from the
+                # nearest known pose, as a frame without a relative pose (ORB kitti-07: a guess
+                # 50 m off from a reference 15 frames back was fused as it was)
+                p0, q0 = filt.pose(self.nearest_known(k)[0])
+                sol = localise_pose(self.camera, p0, q0, Xk, uvk, X_cov=Pk)
             frac = sol[2].mean() if sol is not None else 0.0
             if sol is not None and agrees(p_i, p_k, q_k, sol, max_rot_deg=sysc.agree_rotation_deg,
                                           max_dir_deg=sysc.agree_direction_deg):
