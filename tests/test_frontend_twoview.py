@@ -207,14 +207,20 @@ def _leverage_scene(seed: int, shift_px: float, baseline: float = 1.0):
     corner = (s.uv_i[:, 0] < 80) & (s.uv_i[:, 1] < 80)
     sel = np.r_[np.flatnonzero(centre)[:200], np.flatnonzero(corner)[:3]]
     ui, uj, K = ui[sel], uj[sel].copy(), s.camera.K
-    for k in range(200, 203):
-        eps = 1e-4
+    _move_across_epipolar_lines(s, ui, uj, range(200, 203), shift_px)
+    R, t, _ = refine_pose(s.R_ij, s.t_ij, ui, uj, K, 10)
+    return s, ui, uj, R, t
+
+
+def _move_across_epipolar_lines(s, ui: np.ndarray, uj: np.ndarray, rows, shift_px: float) -> None:
+    """Move ``uj[rows]`` (in place) ``shift_px`` along the gradient of their true Sampson
+    residual: mismatches that far across their epipolar lines."""
+    K, eps = s.camera.K, 1e-4
+    for k in rows:
         g = np.array([(sampson_residuals(s.R_ij, s.t_ij, ui[k:k + 1], uj[k:k + 1] + eps * e, K)[0]
                        - sampson_residuals(s.R_ij, s.t_ij, ui[k:k + 1], uj[k:k + 1], K)[0]) / eps
                       for e in np.eye(2)])
         uj[k] += shift_px * g / np.linalg.norm(g)
-    R, t, _ = refine_pose(s.R_ij, s.t_ij, ui, uj, K, 10)
-    return s, ui, uj, R, t
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -308,12 +314,7 @@ def _noise_scene(seed: int, shift_px: float, baseline: float = 1.0):
     s = make_two_view_scene(rng, "general", n_points=330, depth=(4.0, 12.0), rotation_deg=5.0, baseline=baseline)
     ui, uj = s.noisy(rng, 0.15)
     uj, K = uj.copy(), s.camera.K
-    for k in range(300, 330):
-        eps = 1e-4
-        g = np.array([(sampson_residuals(s.R_ij, s.t_ij, ui[k:k + 1], uj[k:k + 1] + eps * e, K)[0]
-                       - sampson_residuals(s.R_ij, s.t_ij, ui[k:k + 1], uj[k:k + 1], K)[0]) / eps
-                      for e in np.eye(2)])
-        uj[k] += shift_px * g / np.linalg.norm(g)
+    _move_across_epipolar_lines(s, ui, uj, range(300, 330), shift_px)
     R, t, _ = refine_pose(s.R_ij, s.t_ij, ui, uj, K, 10)
     return s, ui, uj, R, t
 
