@@ -282,3 +282,23 @@ def test_model_cost_changes_as_the_relinearised_information_predicts():
     assert pred > 0
     assert 0.99 < (c0 - c1) / pred < 1.01
     assert not 0.9 < (m0 - m1) / pred < 1.1
+
+
+def test_robust_smoothing_leaves_every_pose_its_best_zm():
+    """However tight the ``Zm`` gate, each pose keeps its ``min(n, 12)`` best-fitting ``Zm``
+    (here the gate alone would drop every one): a pose left without any is placed along
+    its ``ZT`` by nothing, and smoothing slid two such frames of 7scenes by metres."""
+    from eifslam.estimation.smoothing import reject_outliers
+
+    _, f = run(corridor_scene, 3, noise=True)
+    obs = f.store.all_features()
+    chi2_all = f.linearise_features(obs, gate=False)[5]
+    reject_outliers(f, 1e-9, None, candidates=obs)
+    kept = f.store.all_features()
+    for k in np.unique(obs.pose):
+        mine = obs.pose == k
+        want = min(int(mine.sum()), 12)
+        got = kept.pose == k
+        assert got.sum() == want
+        best = np.sort(chi2_all[mine])[:want]  # the lowest chi-square ones
+        assert np.allclose(np.sort(f.linearise_features(kept.subset(got), gate=False)[5]), best)
