@@ -200,12 +200,12 @@ class Tracker:
         if filt.layout.n_poses < 2 or filt.layout.n_features == 0:
             return False
         t0 = time.perf_counter()
-        known, X, uv, P = self._known_map(k)
+        known, X, uv, map_cov = self._known_map(k)
         n_min = self.config.system.min_map_features if min_features is None else int(min_features)
         if known.sum() < n_min:
             return False
         p0, q0 = filt.pose(self.nearest_known(k)[0]) if guess is None else guess
-        sol = localise_pose(self.camera, p0, q0, X, uv, min_inliers=min(n_min, 12), X_cov=P)
+        sol = localise_pose(self.camera, p0, q0, X, uv, min_inliers=min(n_min, 12), X_cov=map_cov)
         if sol is None:
             return False
         p, q, _ = sol
@@ -222,7 +222,7 @@ class Tracker:
         filt, sysc = self.filter, self.config.system
         rp = rpr.measurement
         t0 = time.perf_counter()
-        known, Xk, uvk, Pk = self._known_map(k)
+        known, Xk, uvk, map_cov = self._known_map(k)
         p_i, q_i = filt.pose(rp.i)
         first_step = filt.layout.n_poses == 1
         init = pose_from_relative(p_i, q_i, rp, self.camera, Xk, uvk,
@@ -230,12 +230,12 @@ class Tracker:
         p_k, q_k, step = init
         use_relative, refined, cov_k = True, False, None
         if known.sum() >= sysc.min_map_features:  # a better linearisation point: refine on the known map
-            sol = localise_pose(self.camera, p_k, q_k, Xk, uvk, X_cov=Pk)
+            sol = localise_pose(self.camera, p_k, q_k, Xk, uvk, X_cov=map_cov)
             if sol is None:  # the map does not converge from the relative pose's guess: from the
                 # nearest known pose, as a frame without a relative pose (ORB kitti-07: a guess
                 # 50 m off from a reference 15 frames back was fused as it was)
                 p0, q0 = filt.pose(self.nearest_known(k)[0])
-                sol = localise_pose(self.camera, p0, q0, Xk, uvk, X_cov=Pk)
+                sol = localise_pose(self.camera, p0, q0, Xk, uvk, X_cov=map_cov)
             frac = sol[2].mean() if sol is not None else 0.0
             if sol is not None and agrees(p_i, p_k, q_k, sol, max_rot_deg=sysc.agree_rotation_deg,
                                           max_dir_deg=sysc.agree_direction_deg):
