@@ -220,22 +220,27 @@ def reject_outliers(filt: InformationFilter, feature_chi2: Gate | None, relative
             filt.store.relative = [r for r, d in zip(rel, drop) if not d]
             return 0, int(drop.sum())
     if candidates is not None and feature_chi2 is not None and len(candidates):
-        _, _, _, _, _, chi2 = filt.linearise_features(candidates, gate=False)
-        keep = np.isfinite(chi2) & (chi2 <= _gate_of(feature_chi2, candidates))
-        keep = _keep_poses_placed(candidates.pose, chi2, keep, min_pose_features)
+        keep = _fitting(filt, candidates, feature_chi2, min_pose_features)
         n_f = int(np.sum(keep != _stored(candidates, obs)))
         if n_f:
             filt.store.features = [candidates.subset(keep)]
         return n_f, 0
     if feature_chi2 is not None and len(obs):
-        _, _, _, _, _, chi2 = filt.linearise_features(obs, gate=False)
-        keep = np.isfinite(chi2) & (chi2 <= _gate_of(feature_chi2, obs))  # behind a camera (inf) fails too
-        keep = _keep_poses_placed(obs.pose, chi2, keep, min_pose_features)
+        keep = _fitting(filt, obs, feature_chi2, min_pose_features)
         n_f = int(len(obs) - keep.sum())
         if n_f:
             filt.store.features = [obs.subset(keep)]
         return n_f, 0
     return 0, 0
+
+
+def _fitting(filt: InformationFilter, obs: FeatureObservations, feature_chi2: Gate, n_min: int) -> np.ndarray:
+    """Which ``Zm`` of ``obs (N,)`` pass their gate at the current estimate (one behind its
+    camera, chi-square inf, never does), plus each pose's best up to
+    ``min(n_pose, n_min)`` (:func:`_keep_poses_placed`)."""
+    _, _, _, _, _, chi2 = filt.linearise_features(obs, gate=False)
+    keep = np.isfinite(chi2) & (chi2 <= _gate_of(feature_chi2, obs))
+    return _keep_poses_placed(obs.pose, chi2, keep, n_min)
 
 
 def _keep_poses_placed(pose: np.ndarray, chi2: np.ndarray, keep: np.ndarray, n_min: int) -> np.ndarray:
