@@ -24,10 +24,10 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 from scipy.linalg import cho_factor, cho_solve, solve
-from scipy.linalg.blas import dsyrk
 
 from ..errors import EstimatorError
 from .backsub import BackSubstitution
+from .schur import coupled_poses, subtract_gram
 from .state import FEATURE_DIM, POSE_DIM
 
 Array = NDArray[np.float64]
@@ -188,7 +188,8 @@ class ActiveWindow:
         return dict(pidx=np.zeros(0, np.int64), fidx=np.zeros(0, np.int64), P=np.zeros((0, 0)), bp=np.zeros(0),
                     D=np.zeros((0, 3, 3)), bf=np.zeros(0), B=np.zeros((0, 0)), xp=np.zeros(0), xf=np.zeros(0),
                     _S_cho=None, _S_pidx=np.zeros(0, np.int64), _S_fidx=np.zeros(0, np.int64),
-                    _Dinv=np.zeros((0, 3, 3)), _DB=np.zeros((0, 0)))
+                    _Dinv=np.zeros((0, 3, 3)), _DB=np.zeros((0, 0)), _W=np.zeros((0, 0)),
+                    _coupled=np.zeros((0, 0), bool), _W_of=None)
 
     def _reset_window(self) -> None:
         self.__dict__.update(self.empty_window())
@@ -376,11 +377,17 @@ class ActiveWindow:
         Dbf = np.einsum("fij,fj->fi", self._Dinv, self.bf.reshape(F, 3)).ravel()
         r = self.bp - self.B.T @ Dbf
         self._S_cho, self._S_pidx, self._S_fidx = None, self.pidx.copy(), self.fidx.copy()
+        self._W, self._coupled, self._W_of = np.zeros((0, npw)), np.zeros((0, npw // POSE_DIM), bool), None
         if npw:
-            # S = P - B^T D^-1 B = P - W^T W with W = L^-1 B: a symmetric rank-k update
-            # (half the work of the product), lower triangle only
+            # S = P - B^T D^-1 B = P - W^T W with W = L^-1 B, lower triangle only, by
+            # chunks of the staircase of B (a feature is coupled to the few poses that
+            # saw it; :mod:`.schur`)
             W = (Linv @ B3).reshape(3 * F, npw)
-            S = dsyrk(-1.0, W.T, beta=1.0, c=self.P.T, trans=0, lower=1) if F else self.P.copy()
+            S = self.P.copy()
+            if F:
+                self._W, self._coupled = W, coupled_poses(self.B, npw // POSE_DIM)
+                self._W_of = self.B  # the coupling W was made of (_marginalise reuses it)
+                subtract_gram(S, W, self._coupled)
             try:
                 self._S_cho = cho_factor(S, lower=True, check_finite=False)
                 xp = cho_solve(self._S_cho, r)
@@ -403,8 +410,12 @@ class ActiveWindow:
         fstale = (s - last[self.fidx[::3]]) >= self.feature_window
         if np.any(fstale):
             rows = np.repeat(fstale, 3)
-            Bm, DBm = self.B[rows], self._DB[rows]
-            self.P -= Bm.T @ DBm
+            Bm = self.B[rows]
+            if self._W_of is self.B and self._W.shape == self.B.shape:
+                # P -= Bm^T D^-1 Bm = W_m^T W_m, by the staircase (B as solved)
+                subtract_gram(self.P, self._W[rows], self._coupled[fstale], lower=False)
+            else:
+                self.P -= Bm.T @ self._DB[rows]
             Dinv_m = self._Dinv[fstale]
             self.bp -= Bm.T @ np.einsum("fij,fj->fi", Dinv_m, self.bf[rows].reshape(-1, 3)).ravel()
             nz = np.flatnonzero(np.any(Bm != 0, axis=0))

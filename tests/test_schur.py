@@ -1,0 +1,64 @@
+"""The window's pose Schur complement by chunks of its staircase (estimation/schur.py)
+against the dense product."""
+
+import numpy as np
+import pytest
+
+from eifslam.estimation.schur import coupled_poses, staircase_chunks, subtract_gram
+
+
+def _window(rng, F, p, staircase=True, empty=0):
+    """A coupling ``B (3F, 7p)``: each feature coupled to a run of poses (a staircase,
+    most runs short and ending at the last pose) or to random poses; ``empty`` features
+    coupled to none."""
+    coupled = np.zeros((F, p), bool)
+    for f in range(F - empty):
+        if staircase:
+            m = min(p, 2 + int(rng.geometric(0.2)))
+            end = p - int(rng.integers(0, 3))
+            coupled[f, max(0, end - m):end] = True
+        else:
+            coupled[f, rng.choice(p, size=int(rng.integers(1, p + 1)), replace=False)] = True
+    B = rng.normal(size=(3 * F, 7 * p)) * np.repeat(np.repeat(coupled, 3, axis=0), 7, axis=1)
+    return B, coupled
+
+
+@pytest.mark.parametrize("staircase", [True, False])
+def test_chunks_cover_each_coupled_feature_once_within_their_span(staircase):
+    rng = np.random.default_rng(1)
+    B, coupled = _window(rng, 300, 40, staircase, empty=5)
+    assert np.array_equal(coupled_poses(B, 40), coupled)
+    chunks = staircase_chunks(coupled)
+    rows = np.concatenate([r for r, _, _ in chunks])
+    assert sorted(rows.tolist()) == list(range(295))  # every coupled feature once, no empty one
+    for r, lo, hi in chunks:
+        assert 0 <= lo < hi <= 40
+        assert not coupled[r][:, :lo].any() and not coupled[r][:, hi:].any()
+    if staircase:  # the point of it: far fewer columns than the whole window per row
+        work = sum(len(r) * (hi - lo) ** 2 for r, lo, hi in chunks)
+        assert work < 0.5 * 300 * 40 ** 2
+
+
+@pytest.mark.parametrize("staircase", [True, False])
+@pytest.mark.parametrize("lower", [True, False])
+def test_subtract_gram_equals_the_dense_product(staircase, lower):
+    rng = np.random.default_rng(2)
+    F, p = 250, 30
+    B, coupled = _window(rng, F, p, staircase, empty=3)
+    A = rng.normal(size=(7 * p, 7 * p))
+    P = A @ A.T
+    want = P - B.T @ B
+    got = subtract_gram(P.copy(), B, coupled, lower=lower)
+    scale = np.abs(want).max()
+    if lower:
+        assert np.allclose(np.tril(got), np.tril(want), rtol=0, atol=1e-12 * scale)
+        assert np.array_equal(np.triu(got, 1), np.triu(P, 1))  # above the diagonal: untouched
+    else:
+        assert np.allclose(got, want, rtol=0, atol=1e-12 * scale)
+
+
+def test_no_feature_or_no_coupling_changes_nothing():
+    P = np.eye(14)
+    assert staircase_chunks(np.zeros((0, 2), bool)) == []
+    assert staircase_chunks(np.zeros((4, 2), bool)) == []
+    assert np.array_equal(subtract_gram(P.copy(), np.zeros((12, 14)), np.zeros((4, 2), bool)), P)
