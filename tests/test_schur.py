@@ -62,3 +62,50 @@ def test_no_feature_or_no_coupling_changes_nothing():
     assert staircase_chunks(np.zeros((0, 2), bool)) == []
     assert staircase_chunks(np.zeros((4, 2), bool)) == []
     assert np.array_equal(subtract_gram(P.copy(), np.zeros((12, 14)), np.zeros((4, 2), bool)), P)
+
+
+def _slam_information(rng, n_poses=6, n_feats=40):
+    """A random information matrix of SLAM form: poses (7) then features (3), each feature
+    measured from 2-4 poses, consecutive poses linked; positive definite."""
+    n = 7 * n_poses + 3 * n_feats
+    I = np.zeros((n, n))
+    for a in range(n_poses - 1):
+        J = rng.normal(size=(6, 14))
+        I[7 * a:7 * a + 14, 7 * a:7 * a + 14] += J.T @ J
+    for f in range(n_feats):
+        c = 7 * n_poses + 3 * f
+        for a in rng.choice(n_poses, size=int(rng.integers(2, 5)), replace=False):
+            J = rng.normal(size=(2, 10))
+            idx = np.r_[7 * a:7 * a + 7, c:c + 3]
+            I[np.ix_(idx, idx)] += J.T @ J
+    I += 1e-3 * np.eye(n)
+    return I, np.arange(7 * n_poses), np.arange(7 * n_poses, n)
+
+
+def test_factorize_equals_the_dense_solve_on_all_and_on_part_of_the_state():
+    import scipy.sparse as sp
+
+    from eifslam.estimation.recovery import factorize
+
+    rng = np.random.default_rng(3)
+    I, pidx, fidx = _slam_information(rng)
+    b = rng.normal(size=len(I))
+    x = factorize(sp.csr_matrix(I), pidx, fidx).solve(b)
+    assert np.allclose(x, np.linalg.solve(I, b), rtol=1e-9, atol=1e-9 * np.abs(x).max())
+    keep_p, keep_f = pidx[7:], fidx[6:]  # the first pose and two features left out
+    part = np.sort(np.r_[keep_p, keep_f])
+    y = factorize(sp.csr_matrix(I), keep_p, keep_f).solve_entries(b[part], part)
+    want = np.linalg.solve(I[np.ix_(part, part)], b[part])
+    assert np.allclose(y, want, rtol=1e-9, atol=1e-9 * np.abs(want).max())
+
+
+def test_factorize_refuses_two_features_in_one_measurement():
+    import scipy.sparse as sp
+
+    from eifslam.errors import EstimatorError
+    from eifslam.estimation.recovery import factorize
+
+    I, pidx, fidx = _slam_information(np.random.default_rng(4))
+    I[fidx[0], fidx[3]] = I[fidx[3], fidx[0]] = 0.5
+    with pytest.raises(EstimatorError, match="share a measurement"):
+        factorize(sp.csr_matrix(I), pidx, fidx)

@@ -152,6 +152,72 @@ class RestrictedSolve:
         return self.factor.solve_entries(r, self.idx)
 
 
+def _feature_rows(I: sp.csr_matrix, feat_idx: IntArray, pose_idx: IntArray) -> tuple[Array, sp.csr_matrix]:
+    """The features' 3x3 information blocks and their coupling to the poses, read from the
+    features' rows of ``I`` in one pass (no column fancy-indexing of the sparse matrix).
+
+    Parameters
+    ----------
+    I : (n, n) CSR
+    feat_idx : (3 F,) int
+        State indices of the features, three per feature.
+    pose_idx : (7 P,) int
+        State indices of the poses.
+
+    Returns
+    -------
+    D : (F, 3, 3)
+        ``I_ff`` blocks.
+    B : (3 F, 7 P) CSR
+        ``I_fp``, columns in the order of ``pose_idx``.
+
+    Raises
+    ------
+    EstimatorError
+        When two features share a measurement (``I_ff`` is not block diagonal).
+    """
+    n = I.shape[0]
+    F = len(feat_idx) // 3
+    If = I[feat_idx]
+    If.sum_duplicates()
+    row = np.repeat(np.arange(3 * F), np.diff(If.indptr))
+    col, val = If.indices, If.data
+    fpos = np.full(n, -1, np.int64)
+    fpos[feat_idx] = np.arange(3 * F)
+    ppos = np.full(n, -1, np.int64)
+    ppos[pose_idx] = np.arange(len(pose_idx))
+    fc = fpos[col]
+    isf = fc >= 0
+    same = isf & (fc // 3 == row // 3)
+    if np.any(isf & ~same & (val != 0)):
+        raise EstimatorError("two features share a measurement: the information matrix is not of SLAM form")
+    D = np.zeros((F, 3, 3))
+    D[row[same] // 3, row[same] % 3, fc[same] % 3] = val[same]
+    pc = ppos[col]
+    isp = pc >= 0
+    counts = np.bincount(row[isp], minlength=3 * F)
+    indptr = np.concatenate([[0], np.cumsum(counts)])
+    B = sp.csr_matrix((val[isp], pc[isp], indptr), shape=(3 * F, len(pose_idx)))
+    B.sort_indices()
+    return D, B
+
+
+def _gram_by_blocks(B: sp.csr_matrix, Dinv: Array) -> sp.csr_matrix:
+    """``B^T D^-1 B`` (``D^-1`` block diagonal, ``(F, 3, 3)``) as ``W^T W`` with ``W = L^T B``,
+    ``D^-1 = L L^T``, in scipy's block sparse format of 3x7 feature-pose blocks: the same
+    sums as the CSR product, about three times faster (its inner products are the 7x3
+    by 3x7 blocks, not single entries)."""
+    F = len(Dinv)
+    Bb = sp.bsr_matrix(B, blocksize=(3, 7))
+    brow = np.repeat(np.arange(F), np.diff(Bb.indptr))
+    try:
+        Lt = np.linalg.cholesky(Dinv).transpose(0, 2, 1)
+    except np.linalg.LinAlgError:
+        raise EstimatorError("a feature block is not positive definite (seen from one pose only?)") from None
+    Wb = sp.bsr_matrix((np.einsum("bij,bjk->bik", Lt[brow], Bb.data), Bb.indices, Bb.indptr), shape=B.shape)
+    return (Wb.T @ Wb).tocsr()
+
+
 def factorize(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray) -> SchurFactor:
     """Factorise the information matrix ``I`` (n x n) given which entries are features.
 
@@ -168,25 +234,13 @@ def factorize(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray) -> SchurFa
     n = I.shape[0]
     F = len(feat_idx) // 3
     if F:
-        Iff = I[feat_idx][:, feat_idx]
-        fi = np.arange(F * 3)
-        blk = fi // 3
-        coo = Iff.tocoo()
-        same = blk[coo.row] == blk[coo.col]
-        if not np.all(same | (coo.data == 0)):
-            raise EstimatorError("two features share a measurement: the information matrix is not of SLAM form")
-        D = np.zeros((F, 3, 3))
-        D[blk[coo.row[same]], coo.row[same] % 3, coo.col[same] % 3] = coo.data[same]
+        D, B = _feature_rows(I, np.asarray(feat_idx, np.int64), np.asarray(pose_idx, np.int64))
         det = np.linalg.det(D)
         if np.any(~np.isfinite(det)) or np.any(det <= 0):
             bad = int(np.argmax(~(det > 0)))
             raise EstimatorError(f"feature block {bad} has no information (seen from one pose only?)")
         Dinv = np.linalg.inv(D)
-        B = I[feat_idx][:, pose_idx].tocsr()
-        rows = np.repeat(np.arange(F * 3), 3)
-        cols = (np.arange(F * 3)[:, None] // 3 * 3 + np.arange(3)).ravel()
-        Dinv_sp = sp.csr_matrix((Dinv.reshape(F * 3, 3).ravel(), (rows, cols)), shape=(F * 3, F * 3))
-        S = I[pose_idx][:, pose_idx] - (B.T @ Dinv_sp @ B)
+        S = I[pose_idx][:, pose_idx] - _gram_by_blocks(B, Dinv)
     else:
         Dinv = np.zeros((0, 3, 3))
         B = sp.csr_matrix((0, len(pose_idx)))
