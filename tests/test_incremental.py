@@ -497,3 +497,8 @@ def test_add_split_sums_to_what_add_gives():
     assert np.abs(D).max() <= 1e-12 * abs(ref.matrix()).max()
     np.testing.assert_allclose(new.vector, ref.vector, rtol=0, atol=1e-12 * np.abs(ref.vector).max())
     assert len(seen) == 1 and seen[0][0] is idx
+    # the CSR view (the CSC arrays of the symmetric I read as rows) is I to rounding
+    for store in (ref, new):
+        R = store.matrix_csr()
+        assert R.format == "csr" and R.shape == (dim, dim)
+        assert np.abs((R - store.matrix()).toarray()).max() <= 1e-12 * abs(store.matrix()).max()

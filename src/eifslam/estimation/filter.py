@@ -332,7 +332,7 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
     def factor(self) -> SchurFactor:
         """The (cached) factorisation of ``I``."""
         if self._factor is None:
-            self._factor = self.factorize(self.info.matrix())
+            self._factor = self.factorize(self.info.matrix_csr())
         return self._factor
 
     def invalidate(self) -> None:

@@ -384,7 +384,7 @@ class IncrementalRecovery(ReactivatingWindow):
         self.stats.rebuilds += 1
         self._valid = True
         n = self._map.n
-        I = sp.csr_matrix(info.matrix())
+        I = info.matrix_csr()
         i = np.asarray(info.vector[:n], dtype=float)
         isf, start = self._map.is_feature, self._map.start
         age = s - self._last[start]

@@ -69,7 +69,7 @@ class SchurFactor:
     S_factor: object
     n: int
 
-    def _dinv_apply(self, v: Array) -> Array:
+    def apply_dinv(self, v: Array) -> Array:
         """Apply the block-diagonal ``I_ff^-1`` to ``(F*3,)`` or ``(F*3, m)``."""
         F = len(self.Dinv)
         if v.ndim == 1:
@@ -81,10 +81,10 @@ class SchurFactor:
         """Solve ``I x = b`` for ``b`` of shape ``(n,)`` or ``(n, m)``."""
         b = np.asarray(b, dtype=float)
         bp, bf = b[self.pose_idx], b[self.feat_idx]
-        Dbf = self._dinv_apply(bf)
+        Dbf = self.apply_dinv(bf)
         rhs = bp - self.B.T @ Dbf
         xp = self.S_factor.solve(rhs) if len(self.pose_idx) else rhs
-        xf = Dbf - self._dinv_apply(np.asarray(self.B @ xp))
+        xf = Dbf - self.apply_dinv(np.asarray(self.B @ xp))
         x = np.zeros_like(b)
         x[self.pose_idx] = xp
         x[self.feat_idx] = xf
@@ -115,7 +115,7 @@ class SchurFactor:
         cols = (np.arange(F * 3)[:, None] // 3 * 3 + np.arange(3)).ravel()
         Dsp = sp.csr_matrix((self.Dinv.reshape(F * 3, 3).ravel(), (rows, cols)), shape=(F * 3, F * 3))
         DCf = sp.csr_matrix(Dsp @ Cf)
-        Dbf = self._dinv_apply(np.asarray(b, float)[self.feat_idx])
+        Dbf = self.apply_dinv(np.asarray(b, float)[self.feat_idx])
         Rt = (sp.csr_matrix(Cp.T) - sp.csr_matrix(DCf.T) @ self.B).toarray()  # (k, 7P)
         rb = np.asarray(b, float)[self.pose_idx] - self.B.T @ Dbf
         if len(self.pose_idx):
@@ -150,6 +150,69 @@ class RestrictedSolve:
     def solve(self, r: Array) -> Array:
         """``A^-1 r`` for ``r (len(idx),)``, on the same entries."""
         return self.factor.solve_entries(r, self.idx)
+
+    def sparse(self, rows: IntArray) -> "SparseSolve":
+        """A solver for right sides that are zero outside positions ``rows`` of ``idx``."""
+        return SparseSolve(self, np.asarray(rows, np.int64))
+
+
+class SparseSolve:
+    """``A^-1 r`` on the entries of a :class:`RestrictedSolve` for right sides ``r`` that
+    are zero outside a fixed set of positions ``rows`` (a rebuild's conditional, whose
+    coupling to the active window touches few of its entries): with ``r_f``, ``r_p`` the
+    feature and pose parts, ``x_p = S^-1 (r_p - B_c^T D_c^-1 r_c)`` reads only the rows
+    ``B_c`` of the features ``r`` touches, and ``x_f = D^-1 (r_f - B x_p)``. The same
+    solution as :meth:`RestrictedSolve.solve` up to rounding, without its product with
+    every row of ``B`` and its pass over every feature block for the right side.
+
+    Parameters
+    ----------
+    restricted : RestrictedSolve
+    rows : (k,) int
+        Positions in ``restricted.idx`` where right sides may be non-zero.
+    """
+
+    def __init__(self, restricted: RestrictedSolve, rows: IntArray) -> None:
+        f = restricted.factor
+        self.factor, self.rows = f, rows
+        n = f.n
+        fpos = np.full(n, -1, np.int64)
+        fpos[f.feat_idx] = np.arange(len(f.feat_idx))
+        ppos = np.full(n, -1, np.int64)
+        ppos[f.pose_idx] = np.arange(len(f.pose_idx))
+        # where the factor's solution (pose then feature entries) lands in restricted.idx
+        self._out_p = ppos[restricted.idx]
+        self._out_f = fpos[restricted.idx]
+        ent = restricted.idx[rows]
+        self._rp, self._rf = ppos[ent] >= 0, fpos[ent] >= 0
+        self._ppos = ppos[ent][self._rp]
+        feats, inv = np.unique(fpos[ent][self._rf] // 3, return_inverse=True)
+        self._frow = (3 * inv + fpos[ent][self._rf] % 3).astype(np.int64)  # into the touched blocks' rows
+        self._fent = (3 * feats[:, None] + np.arange(3)).ravel()  # their rows of B
+        self._Dinv_c = f.Dinv[feats]
+        self._Bc_T = sp.csr_matrix(f.B[self._fent].T) if len(feats) else None
+
+    def solve(self, r: Array) -> Array:
+        """``A^-1 r``: ``r (k,)`` the right side at ``rows``; the solution on every entry
+        of the restricted solve (its ``idx`` order)."""
+        f = self.factor
+        rhs = np.zeros(len(f.pose_idx))
+        rhs[self._ppos] = r[self._rp]
+        Dbc = np.zeros(0)
+        if self._Bc_T is not None:
+            bc = np.zeros(len(self._fent))
+            bc[self._frow] = r[self._rf]
+            Dbc = np.einsum("fij,fj->fi", self._Dinv_c, bc.reshape(-1, 3)).ravel()
+            rhs -= self._Bc_T @ Dbc
+        xp = f.S_factor.solve(rhs) if len(f.pose_idx) else rhs
+        xf = -f.apply_dinv(np.asarray(f.B @ xp))
+        if len(Dbc):
+            xf[self._fent] += Dbc
+        out = np.empty(len(self._out_p))
+        isp = self._out_p >= 0
+        out[isp] = xp[self._out_p[isp]]
+        out[~isp] = xf[self._out_f[~isp]]
+        return out
 
 
 def _feature_rows(I: sp.csr_matrix, feat_idx: IntArray, pose_idx: IntArray) -> tuple[Array, sp.csr_matrix]:

@@ -103,12 +103,23 @@ class Conditional:
     def apply(self, x: Array) -> None:
         """``x[idx] = solve(b - C x[cidx])`` in place; a pose batch as ``k - K x[cidx]``
         with ``k = A^-1 b``, ``K = A^-1 C`` solved once (a conditional is never changed:
-        undoing one replaces it), one product a back-substitution."""
+        undoing one replaces it), one product a back-substitution; a rebuild as
+        ``k - A^-1 (C x[cidx])`` with ``k`` solved once and the second solve reading only
+        the rows ``C`` couples."""
         if self.chol is not None:
             if self._affine is None:
                 self._affine = (cho_solve(self.chol, self.b), cho_solve(self.chol, self.C))
             k, K = self._affine
             x[self.idx] = k - K @ x[self.cidx] if len(self.cidx) else k
+            return
+        if self.factor is not None and hasattr(self.factor, "sparse") and len(self.cidx):
+            # a rebuild: x = A^-1 b - A^-1 (C x_sep), the first solved once, the second
+            # from the few rows C couples (recovery.SparseSolve), at every back substitution
+            if self._affine is None:
+                rows = np.flatnonzero(np.diff(self.C.indptr))
+                self._affine = (self.factor.solve(self.b), self.factor.sparse(rows), sp.csr_matrix(self.C[rows]))
+            k, sparse, Cr = self._affine
+            x[self.idx] = k - sparse.solve(np.asarray(Cr @ x[self.cidx]).ravel())
             return
         r = self.b - self.C @ x[self.cidx] if len(self.cidx) else self.b.copy()
         if self.Dinv is not None:
