@@ -69,6 +69,7 @@ from eifslam.estimation.measurements import RelativePose  # noqa: E402
 from eifslam.sim.frontend import SyntheticFrontEnd  # noqa: E402
 from eifslam.sim.synthetic import corridor_scene, true_relative  # noqa: E402
 from eifslam.system.slam import Slam  # noqa: E402
+from _posterior import ate_between, positions, posterior_samples  # noqa: E402
 
 
 class BlockNnzCounter:
@@ -398,7 +399,7 @@ def online_accuracy(scene, filt: InformationFilter, max_passes: int) -> dict:
     costs, t0 = [online_cost], time.perf_counter()
     for _ in range(max_passes):
         before = g.x.copy()
-        g.relinearise()
+        fused = g.relinearise()
         g.recover()
         costs.append(measurement_cost(g))
         if np.max(np.abs(g.x - before)) <= 1e-9 * max(1.0, np.abs(g.x).max()):
@@ -408,11 +409,29 @@ def online_accuracy(scene, filt: InformationFilter, max_passes: int) -> dict:
                relinearise_threshold=filt.config.relinearise_threshold,
                relinearisation=None if filt.online is None else dataclasses.asdict(filt.online.stats))
     out["cost_ratio"], out["ate_ratio"] = online_cost / out["batch_cost"], online_ate / out["batch_ate"]
+    out["posterior"] = posterior_spread(filt, g, fused)
     out["passed"] = bool(out["cost_ratio"] <= 1.001 and out["ate_ratio"] <= 1.2)
     print(f"  accuracy: online cost {online_cost:.1f} vs batch {out['batch_cost']:.1f} (ratio {out['cost_ratio']:.5f}), "
           f"ATE {online_ate:.4f} vs {out['batch_ate']:.4f} m (ratio {out['ate_ratio']:.3f}); batch "
           f"{out['batch_passes']} passes, {out['batch_s']:.0f} s", flush=True)
     del g
+    return out
+
+
+def posterior_spread(online: InformationFilter, batch: InformationFilter, fused, n: int = 8) -> dict:
+    """The online estimate's distance from the batch optimum (ATE after Sim(3), the batch
+    in the place of the ground truth) against that of ``n`` draws of the batch posterior
+    (``_posterior``): how much of the ATE gap the data can tell apart."""
+    xb = batch.x
+    pb = positions(batch, xb)
+    t0 = time.perf_counter()
+    draws = [ate_between(positions(batch, xb + y), pb) for y in posterior_samples(batch, fused, n, np.random.default_rng(0))]
+    out = dict(online_to_batch_ate=ate_between(positions(online, online.x), pb), draws=n,
+               posterior_to_batch_ate=draws, posterior_to_batch_ate_median=float(np.median(draws)),
+               seconds=time.perf_counter() - t0)
+    print(f"  online vs batch optimum (ATE, batch as reference) {out['online_to_batch_ate']:.3f} m; posterior draws "
+          f"vs batch median {out['posterior_to_batch_ate_median']:.3f} m [{min(draws):.3f}, {max(draws):.3f}] ({n} draws, "
+          f"{out['seconds']:.0f} s)", flush=True)
     return out
 
 

@@ -372,3 +372,36 @@ def test_loop_scoring_view_overlap_and_same_place():
     assert 0.4 <= lc.view_overlap(cam, here, half, depth) <= 0.6
     far = (np.array([0.8 * width_at_depth, 0.0, 0.0]), eye)  # centres outside each other's image
     assert not lc.same_place(cam, here, far, depth) and 0.1 <= lc.view_overlap(cam, here, far, depth) <= 0.3
+
+
+def test_posterior_samples_have_the_inverse_information_as_covariance():
+    """``_posterior.posterior_samples`` (the spread backend_scaling.py reads the online
+    estimate against): draws whose sample covariance matches the dense ``I^-1`` of the
+    information the last relinearisation built, two-sided; ``ate_between`` ignores a
+    similarity transform."""
+    from eifslam.sim import synthetic
+    from eifslam.sim.frontend import SyntheticFrontEnd
+    from eifslam.system.slam import Slam
+
+    post = _load("_posterior")
+    rng = np.random.default_rng(2)
+    sc = synthetic.corridor_scene(6, rng, points_per_metre=6)
+    fe = SyntheticFrontEnd(sc, 2, map_fraction=1.0)
+    slam = Slam(sc.camera, fe.slam_config(), frontend=fe)
+    for k in range(len(sc.positions)):
+        slam.track(k)
+    f = slam.filter
+    f.complete_estimate()
+    for _ in range(3):  # to convergence, so that x is the last linearisation point
+        fused = f.relinearise()
+        f.recover()
+    fused = f.relinearise()
+    Iinv = np.linalg.inv(f.information_matrix().toarray())
+    cols = f.layout.pose_columns(f.layout.pose_ids)[1:, :3].ravel()  # positions, the fixed first pose left out
+    Y = np.array(post.posterior_samples(f, fused, 800, np.random.default_rng(0)))[:, cols]
+    ratio = Y.var(axis=0) / np.diag(Iinv)[cols]
+    assert 0.75 < np.median(ratio) < 1.3 and 0.6 < ratio.min() and ratio.max() < 1.6
+    P = post.positions(f, f.x)
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    assert post.ate_between(2.5 * P @ R.T + 1.0, P) < 1e-9
+    assert post.ate_between(P + rng.normal(0, 0.1, P.shape), P) > 0.01
