@@ -418,7 +418,7 @@ def online_accuracy(scene, filt: InformationFilter, max_passes: int) -> dict:
     return out
 
 
-def posterior_spread(online: InformationFilter, batch: InformationFilter, fused, n: int = 8) -> dict:
+def posterior_spread(online: InformationFilter, batch: InformationFilter, fused, n: int = 32) -> dict:
     """The online estimate's distance from the batch optimum (ATE after Sim(3), the batch
     in the place of the ground truth) against that of ``n`` draws of the batch posterior
     (``_posterior``): how much of the ATE gap the data can tell apart."""
