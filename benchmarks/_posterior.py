@@ -21,6 +21,8 @@ optimum is then read against that distribution. Ground truth is not used here.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -30,7 +32,7 @@ from eifslam.evaluation.metrics import align_sim3
 
 Array = NDArray[np.float64]
 
-__all__ = ["ate_between", "posterior_samples", "positions"]
+__all__ = ["ate_between", "posterior_samples", "posterior_spread", "positions"]
 
 
 def positions(filt: InformationFilter, x: Array) -> Array:
@@ -70,4 +72,22 @@ def posterior_samples(filt: InformationFilter, fused: NDArray[np.bool_], n: int,
             v = np.einsum("nmk,nm->nk", t.J, np.einsum("nij,nj->ni", L, z))
             np.add.at(r, t.idx.ravel(), v.ravel())
         out.append(factor.solve(r))
+    return out
+
+
+def posterior_spread(online: InformationFilter, batch: InformationFilter, fused, n: int = 32) -> dict:
+    """The online estimate's distance from the batch optimum (ATE after Sim(3), the batch
+    in the place of the ground truth) against that of ``n`` draws of the batch posterior
+    (:func:`posterior_samples`; ``fused`` as the batch's last relinearisation returned):
+    how much of the ATE gap the data can tell apart."""
+    xb = batch.x
+    pb = positions(batch, xb)
+    t0 = time.perf_counter()
+    draws = [ate_between(positions(batch, xb + y), pb) for y in posterior_samples(batch, fused, n, np.random.default_rng(0))]
+    out = dict(online_to_batch_ate=ate_between(positions(online, online.x), pb), draws=n,
+               posterior_to_batch_ate=draws, posterior_to_batch_ate_median=float(np.median(draws)),
+               seconds=time.perf_counter() - t0)
+    print(f"  online vs batch optimum (ATE, batch as reference) {out['online_to_batch_ate']:.3f} m; posterior draws "
+          f"vs batch median {out['posterior_to_batch_ate_median']:.3f} m [{min(draws):.3f}, {max(draws):.3f}] ({n} draws, "
+          f"{out['seconds']:.0f} s)", flush=True)
     return out
