@@ -33,7 +33,9 @@ against Gauss-Newton on the same stored measurements run to convergence (held to
 that optimum against draws of its posterior (``_posterior``). The relinearisation's
 defaults, 0.05 sigma and 1000 a frame, were chosen on seed 0 among 0.1/50 (the earlier
 default), 0.1/1000, 0.05/1000 and 0.03/1000 and checked on seed 1 (docs/backend.md,
-session 35); the system's own default is still no online relinearisation.
+session 35); the system's own default is still no online relinearisation. The window is
+the system's (``system.window``, 5 steps) unless ``--window`` says otherwise (the earlier
+documented runs used 3).
 
 and ``OUT/backend_scaling.png``. ``nnz`` (non-zeros of ``I``) is counted incrementally from
 the block pairs each fusion touches, outside the timed region, and checked once against
@@ -72,6 +74,7 @@ from eifslam.evaluation.metrics import align_sim3  # noqa: E402
 from eifslam.estimation.measurements import RelativePose  # noqa: E402
 from eifslam.sim.frontend import SyntheticFrontEnd  # noqa: E402
 from eifslam.sim.synthetic import corridor_scene, true_relative  # noqa: E402
+from eifslam.system.config import SlamConfig  # noqa: E402
 from eifslam.system.slam import Slam  # noqa: E402
 from _posterior import posterior_spread  # noqa: E402
 
@@ -260,7 +263,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--min-dim", type=int, default=100_000, help="run until this many state entries")
     ap.add_argument("--full-max-dim", type=int, default=25_000, help="full solve each frame up to this size")
     ap.add_argument("--full-every", type=int, default=150, help="time a full solve every N frames (0: never)")
-    ap.add_argument("--window", type=int, default=2, help="steps before a state leaves the active window")
+    ap.add_argument("--window", type=int, default=SlamConfig().system.window,
+                    help="steps before a state leaves the active window (default: the system's, system.window)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--relinearise-threshold", type=float, default=0.05,
                     help="online relinearisation threshold (sigma) of the incremental run; 0: off")
