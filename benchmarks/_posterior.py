@@ -43,8 +43,7 @@ def positions(filt: InformationFilter, x: Array) -> Array:
 
 def ate_between(p: Array, ref: Array) -> float:
     """RMSE of positions ``p (P, 3)`` after the Sim(3) that best aligns them to ``ref (P, 3)``."""
-    S = align_sim3(p, ref)
-    e = S.scale * p @ S.rotation.T + S.translation - ref
+    e = align_sim3(p, ref).apply(p) - ref
     return float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
 
 

@@ -70,13 +70,12 @@ from eifslam.estimation.filter import InformationFilter  # noqa: E402
 from eifslam.estimation.incremental import EntryMap  # noqa: E402
 from eifslam.estimation.recovery import factorize, sparse_cholesky  # noqa: E402
 from eifslam.estimation.smoothing import measurement_cost  # noqa: E402
-from eifslam.evaluation.metrics import align_sim3  # noqa: E402
 from eifslam.estimation.measurements import RelativePose  # noqa: E402
 from eifslam.sim.frontend import SyntheticFrontEnd  # noqa: E402
 from eifslam.sim.synthetic import corridor_scene, true_relative  # noqa: E402
 from eifslam.system.config import SlamConfig  # noqa: E402
 from eifslam.system.slam import Slam  # noqa: E402
-from _posterior import posterior_spread  # noqa: E402
+from _posterior import ate_between, posterior_spread  # noqa: E402
 
 
 class BlockNnzCounter:
@@ -388,10 +387,7 @@ def loop_closure(scene, filt: InformationFilter, slam: Slam, next_frame: int, af
 def ate_sim3(filt: InformationFilter, scene) -> float:
     """RMSE (m) of the pose positions against the scene's after a Sim(3) alignment."""
     ids, p, _ = filt.poses()
-    gt = scene.positions[ids]
-    S = align_sim3(p, gt)
-    e = S.scale * p @ S.rotation.T + S.translation - gt
-    return float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
+    return ate_between(p, scene.positions[ids])
 
 
 def online_accuracy(scene, filt: InformationFilter, max_passes: int) -> dict:

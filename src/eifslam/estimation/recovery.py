@@ -174,7 +174,7 @@ class SparseSolve:
 
     def __init__(self, restricted: RestrictedSolve, rows: IntArray) -> None:
         f = restricted.factor
-        self.factor, self.rows = f, rows
+        self.factor = f
         n = f.n
         fpos = np.full(n, -1, np.int64)
         fpos[f.feat_idx] = np.arange(len(f.feat_idx))

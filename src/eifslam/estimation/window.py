@@ -112,7 +112,7 @@ class Conditional:
             k, K = self._affine
             x[self.idx] = k - K @ x[self.cidx] if len(self.cidx) else k
             return
-        if self.factor is not None and hasattr(self.factor, "sparse") and len(self.cidx):
+        if self.factor is not None and len(self.cidx):
             # a rebuild: x = A^-1 b - A^-1 (C x_sep), the first solved once, the second
             # from the few rows C couples (recovery.SparseSolve), at every back substitution
             if self._affine is None:
