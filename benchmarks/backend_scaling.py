@@ -213,7 +213,8 @@ def checks(rows: list[dict], at_dim: int = 20000) -> dict:
     ref = float(np.max(per_row[m : 2 * m + 1])) if len(rows) > 2 * m else float(per_row[-1])
     end = float(np.max(per_row[-m:]))
     return {
-        "fuse_constant": dict(first10_median_ms=first, last10_median_ms=last, ratio=last / first,
+        "fuse_constant": dict(first10_median_ms=first, last10_median_ms=last,
+                              ratio=last / first if first > 0 else float("nan"),  # too few frames timed
                               passed=bool(last <= 1.5 * first)),
         "recover_at_most_linear": dict(loglog_slope=slope, passed=bool(slope <= 1.1)),
         "fuse_plus_recover_at_20k": dict(state_dim=at_dim, median_ms=tot, frames=len(nr),

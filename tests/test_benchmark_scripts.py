@@ -405,3 +405,17 @@ def test_posterior_samples_have_the_inverse_information_as_covariance():
     R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     assert post.ate_between(2.5 * P @ R.T + 1.0, P) < 1e-9
     assert post.ate_between(P + rng.normal(0, 0.1, P.shape), P) > 0.01
+
+
+def test_backend_scaling_checks_survive_untimed_fusion():
+    """``checks`` on a run too short to time any fusion (every ``fuse_ms`` 0 at first):
+    the constant-fusion check fails with a NaN ratio instead of dividing by zero, and a
+    flat run passes it."""
+    bs = _load("backend_scaling")
+    rows = [dict(state_dim=7 * (k + 1), fuse_ms=0.0 if k < 5 else 0.6, recover_ms=0.1 * (k + 1),
+                 nnz=49 * (k + 1)) for k in range(20)]
+    out = bs.checks(rows)["fuse_constant"]
+    assert np.isnan(out["ratio"]) and not out["passed"]
+    flat = [dict(r, fuse_ms=0.5) for r in rows]
+    out = bs.checks(flat)["fuse_constant"]
+    assert out["ratio"] == pytest.approx(1.0) and out["passed"]
