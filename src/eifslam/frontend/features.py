@@ -145,7 +145,8 @@ def make_detector(config: FrontEndConfig) -> "cv2.Feature2D":
     name = config.detector
     if name == "sift":
         return cv2.SIFT_create(nfeatures=n, nOctaveLayers=config.sift_octave_layers,
-                               contrastThreshold=float(config.sift_contrast_threshold))
+                               contrastThreshold=float(config.sift_contrast_threshold),
+                               enable_precise_upscale=bool(config.sift_precise_upscale))
     if name == "orb":
         return cv2.ORB_create(nfeatures=max(n, int(round(n * float(config.orb_candidates)))), fastThreshold=10)
     if name == "akaze":
