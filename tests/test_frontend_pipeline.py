@@ -290,29 +290,39 @@ def test_orb_candidates_keep_max_features_spread_wider_than_opencvs_choice(textu
     assert right(fb) > right(fa)
 
 
+def _blob_image(sigma: float, seed: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian blobs of ``sigma`` px at random sub-pixel centres ``(N, 2)`` on a grid
+    (``CAM``'s size, uint8), each drawn within 5 sigma of its centre."""
+    rng = np.random.default_rng(seed)
+    img = np.full((CAM.height, CAM.width), 40.0)
+    step = int(8 * sigma) + 10
+    centres = np.array([(x + rng.uniform(-0.5, 0.5), y + rng.uniform(-0.5, 0.5))
+                        for y in range(step, CAM.height - step, step) for x in range(step, CAM.width - step, step)])
+    r = int(5 * sigma) + 2
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    for x, y in centres:
+        xi, yi = int(x), int(y)
+        img[yi - r : yi + r + 1, xi - r : xi + r + 1] += 180.0 * np.exp(
+            -((xx + xi - x) ** 2 + (yy + yi - y) ** 2) / (2.0 * sigma**2))
+    return np.clip(img, 0, 255).astype(np.uint8), centres
+
+
 @pytest.mark.parametrize("precise", [False, True])
 def test_sift_keypoints_of_rendered_blobs_against_their_centres(precise):
     """Gaussian blobs at known sub-pixel centres (sigma 1.5-6 px, so that the doubled
     first octave and the next two find them): with ``sift_precise_upscale`` SIFT puts its
-    keypoints on the centres (mean offset under 0.05 px); without it OpenCV's upscaling
-    shifts every keypoint by about a quarter pixel right and down, the bias the option
-    removes."""
+    keypoints on the centres (mean offset under 0.05 px); without it (the default)
+    OpenCV's upscaling shifts every keypoint by about a quarter pixel right and down, the
+    bias the option removes."""
     from scipy.spatial import cKDTree
 
     from eifslam.frontend.features import detect_features, make_detector
 
-    rng = np.random.default_rng(3)
+    cfg = FrontEndConfig(max_features=2000, sift_precise_upscale=precise, normalise_gain=False)
     offsets = []
     for sigma in (1.5, 3.0, 6.0):
-        img = np.full((CAM.height, CAM.width), 40.0)
-        step = int(8 * sigma) + 10
-        centres = np.array([(x + rng.uniform(-0.5, 0.5), y + rng.uniform(-0.5, 0.5))
-                            for y in range(step, CAM.height - step, step) for x in range(step, CAM.width - step, step)])
-        yy, xx = np.mgrid[0 : CAM.height, 0 : CAM.width]
-        for x, y in centres:
-            img += 180.0 * np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2.0 * sigma**2))
-        cfg = FrontEndConfig(max_features=2000, sift_precise_upscale=precise, normalise_gain=False)
-        f = detect_features(np.clip(img, 0, 255).astype(np.uint8), CAM, cfg, make_detector(cfg))
+        img, centres = _blob_image(sigma)
+        f = detect_features(img, CAM, cfg, make_detector(cfg))
         d, i = cKDTree(f.uv_raw).query(centres)
         found = d < 1.0
         assert found.mean() > 0.5, f"sigma {sigma}: {found.sum()} of {len(centres)} blobs found"

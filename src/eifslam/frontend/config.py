@@ -68,7 +68,8 @@ class FrontEndConfig:
     sift_precise_upscale : bool
         OpenCV's ``enable_precise_upscale``: the doubled first octave maps pixel ``x`` to
         ``2x``. Without it every SIFT keypoint is detected a quarter pixel right of and
-        below where it is (measured on rendered blobs in docs/frontend.md).
+        below where it is (rendered blobs, docs/frontend.md). Off by default: it lost on
+        five of the seven shared sets (leave-one-out, docs/loo_study.md).
     orb_candidates : float >= 1
         ORB detects this many times ``max_features`` keypoints and keeps ``max_features`` of
         them spread over the image (:func:`~eifslam.frontend.features.spread_keypoints`:
