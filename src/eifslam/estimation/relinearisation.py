@@ -21,11 +21,17 @@ second order in ``x - x0``; it is evaluated only where the first-order change
 threshold, largest first and at most ``EVALUATIONS_PER_BUDGET * budget`` per frame,
 which bounds the per-frame cost whatever the map size.
 
+A measurement on its last step in the window (its feature, or one of its poses, not
+measured for ``window - 1`` steps: unless measured again in this frame, the step's
+marginalisation makes its linearisation final) is relinearised at the current estimate
+whatever its error, after the ones over the threshold and within the same budget: the
+last estimate it can take is the best one it will have.
+
 Only measurements whose states are all in the incremental recovery's active window are
 candidates (``live``: a ``Zm`` while its feature was measured within the feature window,
 a ``ZR``/``ZT`` while both poses were measured within the pose window); once one of their
-states is marginalised their linearisation is final (the elimination used it). So the work per frame is bounded by the window, not
-the map. ``Zm`` and ``ZR``/``ZT`` are relinearised; priors and the quaternion-norm
+states is marginalised their linearisation is final (the elimination used it). So the
+work per frame is bounded by the window, not the map. ``Zm`` and ``ZR``/``ZT`` are relinearised; priors and the quaternion-norm
 pseudo-measurements are not. Measurements fused before ``I`` was replaced wholesale
 (smoothing, rescaling) are no longer tracked; sessions keep the candidates.
 """
@@ -65,7 +71,8 @@ class RelinearisationStats:
     evaluated : measurements whose linearisation error was evaluated (their first-order
         change exceeded the threshold), summed over frames.
     relinearised : measurements relinearised, summed over frames.
-    over_budget : measurements above the threshold left for a later frame (budget).
+    over_budget : measurements above the threshold (or on their last step) left by the
+        budget: for a later frame, or frozen as they are.
     """
 
     steps: int = 0
@@ -110,6 +117,14 @@ class LiveBatch:
             else a.meas + b.meas
         return LiveBatch(meas, *(np.concatenate([getattr(a, k), getattr(b, k)])
                                  for k in ("idx", "J", "W", "innov", "x0")))
+
+
+def _rank(err2: Array, last: NDArray[np.bool_], t2: float) -> Array:
+    """Ranking key of measurements with squared errors ``err2 (N,)``: the error itself
+    above the squared threshold ``t2``; in ``[t2 / 2, t2]`` for one on its last step in
+    the window (below every one over the threshold, larger errors first); -1 (not
+    relinearised) otherwise."""
+    return np.where(err2 > t2, err2, np.where(last, 0.5 * (t2 + np.minimum(err2, t2)), -1.0))
 
 
 def contribution(idx: IntArray, J: Array, W: Array, innov: Array, x0: Array) -> tuple[Array, Array]:
@@ -167,16 +182,18 @@ class OnlineRelinearisation:
         self.features = self.relative = None
 
     @staticmethod
-    def _in_window(inc, name: str, idx: IntArray) -> NDArray[np.bool_]:
+    def _in_window(inc, name: str, idx: IntArray, less: int = 0) -> NDArray[np.bool_]:
         """Which measurements ``idx (N, k)`` are still candidates: a ``Zm`` while its feature
         was measured within ``feature_window`` steps (the window keeps such a feature, and
         every pose coupled to it), a ``ZR``/``ZT`` while both poses were measured within
         ``pose_window`` steps. Decided from the steps of the last measurements only (not the
         window's current make-up, which a rebuild changes), so a loaded session prunes as
-        the uninterrupted run does."""
+        the uninterrupted run does. ``less``: within that many steps fewer (1: which will
+        still be candidates after this step's marginalisation, unless measured again)."""
         if name == "features":
-            return inc.measured_within(idx[:, 7], inc.feature_window)
-        return inc.measured_within(idx[:, 0], inc.pose_window) & inc.measured_within(idx[:, 7], inc.pose_window)
+            return inc.measured_within(idx[:, 7], inc.feature_window - less)
+        w = inc.pose_window - less
+        return inc.measured_within(idx[:, 0], w) & inc.measured_within(idx[:, 7], w)
 
     # -- sessions -----------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -238,10 +255,14 @@ class OnlineRelinearisation:
             dx = x[live.idx] - live.x0
             d = np.einsum("nmk,nk->nm", live.J, dx)
             f2 = np.einsum("ni,nij,nj->n", d, live.W, d)
-            cand = np.flatnonzero(f2 > self.threshold**2)
+            # on their last step in the window: evaluated whatever their change, ranked
+            # after every measurement over the threshold
+            last = ~self._in_window(inc, name, live.idx, less=1)
+            rank = _rank(f2, last, self.threshold**2)
+            cand = np.flatnonzero(rank > 0)
             cap = EVALUATIONS_PER_BUDGET * self.budget
             if len(cand) > cap:  # the largest first-order changes first; the rest wait
-                cand = cand[np.argpartition(-f2[cand], cap)[:cap]]
+                cand = cand[np.argpartition(-rank[cand], cap)[:cap]]
             self.stats.evaluated += len(cand)
             if len(cand) == 0:
                 continue
@@ -259,8 +280,8 @@ class OnlineRelinearisation:
             e = live.innov[cand] - d[cand] - innov
             err2 = np.einsum("ni,nij,nj->n", e, live.W[cand], e)
             ok &= np.isfinite(err2) & np.all(np.isfinite(J), axis=(1, 2)) & np.all(np.isfinite(innov), axis=1)
-            parts.append((name, live, cand, np.where(ok, err2, -1.0), J, innov))
-        over = [np.flatnonzero(e2 > self.threshold**2) for _, _, _, e2, _, _ in parts]
+            parts.append((name, live, cand, np.where(ok, _rank(err2, last[cand], self.threshold**2), -1.0), J, innov))
+        over = [np.flatnonzero(e2 > 0) for _, _, _, e2, _, _ in parts]
         n_over = sum(len(o) for o in over)
         if n_over == 0:
             return 0
