@@ -31,9 +31,10 @@ Only measurements whose states are all in the incremental recovery's active wind
 candidates (``live``: a ``Zm`` while its feature was measured within the feature window,
 a ``ZR``/``ZT`` while both poses were measured within the pose window); once one of their
 states is marginalised their linearisation is final (the elimination used it). So the
-work per frame is bounded by the window, not the map. ``Zm`` and ``ZR``/``ZT`` are relinearised; priors and the quaternion-norm
-pseudo-measurements are not. Measurements fused before ``I`` was replaced wholesale
-(smoothing, rescaling) are no longer tracked; sessions keep the candidates.
+work per frame is bounded by the window, not the map. ``Zm`` and ``ZR``/``ZT`` are
+relinearised; priors and the quaternion-norm pseudo-measurements are not. Measurements
+fused before ``I`` was replaced wholesale (smoothing, rescaling) are no longer tracked;
+sessions keep the candidates.
 """
 
 from __future__ import annotations
@@ -69,7 +70,8 @@ class RelinearisationStats:
     ----------
     steps : frames processed.
     evaluated : measurements whose linearisation error was evaluated (their first-order
-        change exceeded the threshold), summed over frames.
+        change exceeded the threshold, or they were on their last step in the window),
+        summed over frames.
     relinearised : measurements relinearised, summed over frames.
     over_budget : measurements above the threshold (or on their last step) left by the
         budget: for a later frame, or frozen as they are.
