@@ -82,11 +82,12 @@ def posterior_spread(online: InformationFilter, batch: InformationFilter, fused,
     xb = batch.x
     pb = positions(batch, xb)
     t0 = time.perf_counter()
-    draws = [ate_between(positions(batch, xb + y), pb) for y in posterior_samples(batch, fused, n, np.random.default_rng(0))]
+    samples = posterior_samples(batch, fused, n, np.random.default_rng(0))
+    draws = [ate_between(positions(batch, xb + y), pb) for y in samples]
     out = dict(online_to_batch_ate=ate_between(positions(online, online.x), pb), draws=n,
                posterior_to_batch_ate=draws, posterior_to_batch_ate_median=float(np.median(draws)),
                seconds=time.perf_counter() - t0)
-    print(f"  online vs batch optimum (ATE, batch as reference) {out['online_to_batch_ate']:.3f} m; posterior draws "
-          f"vs batch median {out['posterior_to_batch_ate_median']:.3f} m [{min(draws):.3f}, {max(draws):.3f}] ({n} draws, "
-          f"{out['seconds']:.0f} s)", flush=True)
+    print(f"  online vs batch optimum (ATE, batch as reference) {out['online_to_batch_ate']:.3f} m; posterior "
+          f"draws vs batch median {out['posterior_to_batch_ate_median']:.3f} m [{min(draws):.3f}, "
+          f"{max(draws):.3f}] ({n} draws, {out['seconds']:.0f} s)", flush=True)
     return out
