@@ -136,3 +136,35 @@ def test_sparse_right_side_solve_equals_the_dense_solve(which):
     got = solver.sparse(rows).solve(r)
     assert np.allclose(got, want, rtol=1e-9, atol=1e-9 * np.abs(want).max())
     assert np.allclose(got, solver.solve(full), rtol=1e-12, atol=1e-12 * np.abs(want).max())
+
+
+@pytest.mark.parametrize("n_keep", [1, 3])
+def test_factorize_onto_equals_the_dense_schur_complement(n_keep, monkeypatch):
+    """A rebuild's marginal of the kept poses, from the trailing block of the reduced
+    matrix's factor, against ``I_kk - I_km I_mm^-1 I_mk`` in dense algebra; the active
+    features (the last two) take no part. Without the fallback to the solves."""
+    import scipy.sparse as sp
+
+    from eifslam.estimation.recovery import SchurFactor, factorize_onto
+
+    def no_fallback(*a, **k):
+        raise AssertionError("fell back to SchurFactor.project")
+
+    monkeypatch.setattr(SchurFactor, "project", no_fallback)
+
+    rng = np.random.default_rng(5)
+    I, pidx, fidx = _slam_information(rng, n_poses=8, n_feats=60)
+    i = rng.normal(size=len(I))
+    keep = pidx[7 * (8 - n_keep):]
+    mp, mf = pidx[: 7 * (8 - n_keep)], fidx[:-6]
+    m = np.r_[mp, mf]
+    factor, P, b = factorize_onto(sp.csr_matrix(I), mp, mf, keep, i)
+    Imm_inv = np.linalg.inv(I[np.ix_(m, m)])
+    want_P = I[np.ix_(keep, keep)] - I[np.ix_(keep, m)] @ Imm_inv @ I[np.ix_(m, keep)]
+    want_b = i[keep] - I[np.ix_(keep, m)] @ Imm_inv @ i[m]
+    assert np.allclose(P, want_P, rtol=0, atol=1e-9 * np.abs(want_P).max())
+    assert np.allclose(b, want_b, rtol=0, atol=1e-9 * np.abs(want_b).max())
+    assert np.allclose(P, P.T, rtol=0, atol=0)
+    # the factor is that of I_mm, as factorize's
+    r = rng.normal(size=len(m))
+    assert np.allclose(factor.solve_entries(r, m), Imm_inv @ r, rtol=1e-9, atol=1e-9 * np.abs(Imm_inv @ r).max())

@@ -43,7 +43,7 @@ the window is rebuilt from the full sparse ``I`` instead (counted as a fallback)
 eliminated part into one feature batch and one dense pose batch when it holds at most
 ``undoable_rebuild_pose_entries`` pose entries (undoable like any marginalisation, so a
 revisit after a rebuild re-activates instead of rebuilding again), else into one sparse
-factorisation (:func:`eifslam.recovery.factorize`); a window over the recent states and
+factorisation (:func:`eifslam.recovery.factorize_onto`); a window over the recent states and
 the touched ones, and every state back-substituted, so ``x`` is the full solution at that
 frame; the frames after it are constant time again. Rebuilding also follows
 :meth:`InformationStore.reset` / ``set`` (smoothing, rescaling).
@@ -63,7 +63,7 @@ from scipy.linalg import cho_solve
 
 from ..errors import ConfigError, EstimatorError, SessionError
 from .information import InformationStore
-from .recovery import factorize
+from .recovery import factorize_onto
 from .statedict import sub, take_ids, take_int
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout
 from .reactivation import ReactivatingWindow
@@ -376,11 +376,12 @@ class IncrementalRecovery(ReactivatingWindow):
         recent poses (states just measured included, however old); the rest ``m`` is eliminated exactly from the
         full sparse ``I``: into a feature batch and a dense pose batch when it holds at most
         ``undoable_rebuild_pose_entries`` pose entries (:meth:`_eliminate_undoably`), else
-        into one conditional: one sparse factorisation of ``I_mm``
-        (features first, :func:`~eifslam.estimation.recovery.factorize` on the entries of
-        ``m``, without extracting ``I_mm``), and ``I_am I_mm^-1 I_ma`` from ``k + 1``
-        solves of its pose system (:meth:`~eifslam.estimation.recovery.SchurFactor.project`),
-        ``k`` the active pose entries: about the cost of one full solve."""
+        into one conditional: one sparse factorisation of ``I_mm`` (features first, on the
+        entries of ``m``, without extracting ``I_mm``), and the marginal of the active
+        poses ``I_aa - I_am I_mm^-1 I_ma`` from a second factorisation of the reduced pose
+        system with the active poses ordered last
+        (:func:`~eifslam.estimation.recovery.factorize_onto`): about the cost of one full
+        solve."""
         self.stats.rebuilds += 1
         self._valid = True
         n = self._map.n
@@ -407,16 +408,13 @@ class IncrementalRecovery(ReactivatingWindow):
             P, bp = self._eliminate_undoably(I, i, pa, mf, mp)
         else:
             Ia = I[pa]  # (7p, n): the active poses' rows; I_ma is its transpose (I symmetric)
-            P = Ia[:, pa].toarray()
-            bp = i[pa].copy()
             if len(m):
-                factor = factorize(I, mp, mf)
-                Cg = sp.csr_matrix(Ia.T)
-                CtAC, CtAb = factor.project(Cg, i)
-                P -= CtAC
-                bp -= CtAb
-                self._conds.append(Conditional(m, i[m].copy(), Cg[m], pa, factor=factor.restricted(m)))
+                factor, P, bp = factorize_onto(I, mp, mf, pa, i)
+                self._conds.append(Conditional(m, i[m].copy(), sp.csr_matrix(Ia.T)[m], pa,
+                                               factor=factor.restricted(m)))
                 self._owner[m] = 0
+            else:
+                P, bp = Ia[:, pa].toarray(), i[pa].copy()
         self._pos[:] = -1
         self.pidx, self.fidx = pa, fa
         self._pos[pa] = np.arange(len(pa))

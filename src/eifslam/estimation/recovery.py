@@ -281,6 +281,74 @@ def _gram_by_blocks(B: sp.csr_matrix, Dinv: Array) -> sp.csr_matrix:
     return (Wb.T @ Wb).tocsr()
 
 
+def factorize_onto(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray, keep: IntArray,
+                   i: Array) -> tuple[SchurFactor, Array, Array]:
+    """Factorise the block of ``I`` on ``pose_idx`` and ``feat_idx`` (as :func:`factorize`)
+    and eliminate it from the block on ``pose_idx``, ``feat_idx`` and the poses ``keep``:
+    the marginal information of ``keep``, ``P = I_kk - I_km I_mm^-1 I_mk`` and
+    ``b = i_k - I_km I_mm^-1 i_m`` (``m`` the factorised entries).
+
+    :meth:`SchurFactor.project` gives the same from ``len(keep) + 1`` solves of the pose
+    system; here the features are eliminated onto both pose sets at once and the reduced
+    matrix, ``keep`` ordered last after the pose system's own fill-reducing order, is
+    factorised once more: the trailing block of that ``L U`` is ``P``. On the loop world's
+    rebuilds (7,000 factorised pose entries, ~1,000 kept) that is a fraction of the
+    solves' time. Falls back to :meth:`SchurFactor.project` if SuperLU reorders the
+    columns it was given.
+
+    Parameters
+    ----------
+    I : sparse (n, n)
+    pose_idx, feat_idx : int arrays
+        The entries eliminated (``m``), poses and features (three per feature).
+    keep : (k,) int
+        Pose entries kept; disjoint from ``m``; other entries of ``I`` are ignored.
+    i : (n,) float
+        The information vector.
+
+    Returns
+    -------
+    factor : SchurFactor
+        Of ``I_mm`` (what :func:`factorize` returns).
+    P : (k, k) float
+    b : (k,) float
+    """
+    I = sp.csr_matrix(I)
+    pose_idx, feat_idx, keep = (np.asarray(a, np.int64) for a in (pose_idx, feat_idx, keep))
+    nm, k = len(pose_idx), len(keep)
+    if not len(feat_idx) or not nm or not k:
+        factor = factorize(I, pose_idx, feat_idx)
+        C = sp.csr_matrix(I[keep].T)
+        CtAC, CtAb = factor.project(C, i)
+        return factor, I[keep][:, keep].toarray() - CtAC, np.asarray(i, float)[keep] - CtAb
+    ps = np.concatenate([pose_idx, keep])
+    D, B = _feature_rows(I, feat_idx, ps)
+    det = np.linalg.det(D)
+    if np.any(~np.isfinite(det)) or np.any(det <= 0):
+        bad = int(np.argmax(~(det > 0)))
+        raise EstimatorError(f"feature block {bad} has no information (seen from one pose only?)")
+    Dinv = np.linalg.inv(D)
+    T = sp.csr_matrix(I[ps][:, ps] - _gram_by_blocks(B, Dinv))
+    T = 0.5 * (T + T.T)
+    S = sp.csc_matrix(T[:nm][:, :nm])
+    factor = SchurFactor(pose_idx, feat_idx, Dinv, sp.csr_matrix(B[:, :nm]), sparse_cholesky(S), I.shape[0])
+    i = np.asarray(i, float)
+    F = len(Dinv)
+    r = i[ps] - B.T @ np.einsum("fij,fj->fi", Dinv, i[feat_idx].reshape(F, 3)).ravel()
+    Tkm = sp.csr_matrix(T[nm:][:, :nm])
+    b = r[nm:] - Tkm @ factor.S_factor.solve(r[:nm])
+    order = np.concatenate([np.argsort(factor.S_factor.perm_c), nm + np.arange(k)])
+    lu = splu(sp.csc_matrix(T[order][:, order]), permc_spec="NATURAL", diag_pivot_thresh=0.0,
+              options=dict(SymmetricMode=True))
+    ident = np.arange(nm + k)
+    if not (np.array_equal(lu.perm_c, ident) and np.array_equal(lu.perm_r, ident)):
+        CtAC, CtAb = factor.project(sp.csr_matrix(I[keep].T), i)
+        return factor, I[keep][:, keep].toarray() - CtAC, i[keep] - CtAb
+    L, U = lu.L.tocsc()[:, nm:], lu.U.tocsr()[nm:]  # the trailing blocks' columns of L, rows of U
+    P = L[nm:].toarray() @ U[:, nm:].toarray()
+    return factor, 0.5 * (P + P.T), np.asarray(b).ravel()
+
+
 def factorize(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray) -> SchurFactor:
     """Factorise the information matrix ``I`` (n x n) given which entries are features.
 
