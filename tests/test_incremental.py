@@ -230,6 +230,55 @@ def test_state_in_a_rebuild_falls_back_to_a_rebuild():
     assert rel_err(f.x, full_solve(f)) < 1e-8
 
 
+def test_sparse_rebuilds_keep_the_features_elimination_and_stay_exact(monkeypatch):
+    """Each sparse rebuild after the first takes the eliminated features' ``G``, ``g`` from
+    the previous one (:class:`~eifslam.estimation.elimination.FeatureElimination`), reading
+    from ``I`` only the features touched or newly eliminated since: the kept sums equal a
+    fresh elimination of the same features, and every rebuild equals the full solve."""
+    import scipy.sparse as sp
+
+    import eifslam.estimation.elimination as elimination
+    from eifslam.estimation.recovery import feature_blocks, gram_by_blocks
+
+    read = []  # features read from I by each update of the kept elimination
+
+    def counting(I, feat_idx, pose_idx):
+        read.append(len(feat_idx) // 3)
+        return feature_blocks(I, feat_idx, pose_idx)
+
+    monkeypatch.setattr(elimination, "feature_blocks", counting)
+    sc, m = scene(20, 5)
+    f = run_slam(sc, m, InformationFilter(sc.camera, recovery="incremental", window=1))
+    inc = f.incremental
+    inc.undoable_rebuild_pose_entries = 0  # every rebuild is one sparse factorisation
+    inc.rebuild_horizon = 1  # of everything but the states just measured
+    smooth(f, max_passes=1)  # I replaced: the next sparse rebuild eliminates afresh
+    elim = None
+    for k in (19, 2, 5, 3, 12):
+        rebuilds = inc.stats.rebuilds
+        _old_image_again(f, m, k)
+        f.recover_active()
+        assert inc.stats.rebuilds == rebuilds + 1
+        if elim is not None:
+            assert inc._elim is elim  # noqa: SLF001  kept, not made afresh
+        elim = inc._elim  # noqa: SLF001
+        f.complete_estimate()
+        assert rel_err(f.x, full_solve(f)) < 1e-8
+        # the kept sums against a fresh elimination of the same features
+        I = f.info.matrix_csr()
+        poses = np.flatnonzero(~np.isin(np.arange(f.dim), f.index_sets()[1]))
+        D, B = feature_blocks(I, elim.entries(), poses)
+        Dinv = np.linalg.inv(D)
+        G = gram_by_blocks(B, Dinv).toarray()
+        g = B.T @ np.einsum("fij,fj->fi", Dinv, f.info.vector[elim.entries()].reshape(-1, 3)).ravel()
+        np.testing.assert_allclose(sp.csr_matrix(elim.G).toarray()[: len(poses), : len(poses)], G,
+                                   rtol=0, atol=1e-10 * np.abs(G).max())
+        np.testing.assert_allclose(elim.g[: len(poses)], g, rtol=0, atol=1e-10 * np.abs(g).max())
+    n_elim = len(elim.starts)
+    assert len(read) >= 3 and read[0] > 0
+    assert all(r < n_elim for r in read[1:])  # later rebuilds read only part of what they eliminate
+
+
 def test_indefinite_window_is_solved_without_a_rebuild(monkeypatch):
     """When the Cholesky factorisation of the window fails (a numerically indefinite
     pose Schur complement, as on long real sequences), the window is solved by LDL^T and

@@ -63,7 +63,8 @@ from scipy.linalg import cho_solve
 
 from ..errors import ConfigError, EstimatorError, SessionError
 from .information import InformationStore
-from .recovery import factorize_onto
+from .elimination import FeatureElimination
+from .recovery import factorize_onto, reduced_onto
 from .statedict import sub, take_ids, take_int
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout
 from .reactivation import ReactivatingWindow
@@ -229,6 +230,7 @@ class IncrementalRecovery(ReactivatingWindow):
         self._valid = False
         self._late: list[IntArray] = []  # entries measured while the window was invalid
         self._conds: list[Conditional | None] = []  # elimination order; None once undone
+        self._elim = FeatureElimination()  # the sparse rebuilds' feature elimination, kept
         self._reset_window()
 
     # -- pickling -----------------------------------------------------------------------
@@ -239,6 +241,7 @@ class IncrementalRecovery(ReactivatingWindow):
         complete estimate (:meth:`full_solution`) if it is needed after loading."""
         state = self.__dict__.copy()
         state.update(self.empty_window(), _conds=[], _backsub=None, _pending=[], _late=[], _valid=False,
+                     _elim=FeatureElimination(),
                      _owner=np.full(len(self._owner), -1, np.int64), _pos=np.full(len(self._pos), -1, np.int64))
         return state
 
@@ -277,6 +280,7 @@ class IncrementalRecovery(ReactivatingWindow):
         only which states were measured is kept (the rebuild reads ``I``), so that the
         rebuild keeps them in the window: e.g. a loop's ``Zm`` of old features fused
         after the estimate was moved, which the next frames observe again."""
+        self._elim.touch(idx)
         if self._valid:
             self._pending.append((idx, Lam, eta, self._measuring))
         elif self._measuring:
@@ -297,6 +301,7 @@ class IncrementalRecovery(ReactivatingWindow):
         """``I`` was replaced wholesale: rebuild at the next step. Which states the fusions
         not yet stepped measured is kept (as for fusions while invalid, :meth:`on_add`)."""
         self._late += [p[0].ravel() for p in self._pending if p[3]]
+        self._elim = FeatureElimination()  # I may have been replaced: eliminate afresh
         self._valid = False
         self._pending = []
 
@@ -409,7 +414,7 @@ class IncrementalRecovery(ReactivatingWindow):
         else:
             Ia = I[pa]  # (7p, n): the active poses' rows; I_ma is its transpose (I symmetric)
             if len(m):
-                factor, P, bp = factorize_onto(I, mp, mf, pa, i)
+                factor, P, bp = self._eliminate_sparse(I, i, mp, mf, pa, pose_all)
                 self._conds.append(Conditional(m, i[m].copy(), sp.csr_matrix(Ia.T)[m], pa,
                                                factor=factor.restricted(m)))
                 self._owner[m] = 0
@@ -430,6 +435,22 @@ class IncrementalRecovery(ReactivatingWindow):
         self.B = I[fa][:, pa].toarray()
         self.bf = i[fa].copy()
 
+
+    def _eliminate_sparse(self, I: sp.csr_matrix, i: Array, mp: IntArray, mf: IntArray, pa: IntArray,
+                          pose_all: IntArray) -> tuple:
+        """:func:`~eifslam.estimation.recovery.factorize_onto` of ``m = mp + mf`` onto ``pa``,
+        the features' elimination taken from the one kept since the last sparse rebuild
+        (:class:`~eifslam.estimation.elimination.FeatureElimination`: only the features
+        touched or newly eliminated since are read from ``I``)."""
+        if not (len(mf) and len(pa)):
+            return factorize_onto(I, mp, mf, pa, i)
+        elim = self._elim
+        elim.update(I, i, np.unique(self._map.start[mf]), pose_all)
+        pos = np.full(self._map.n, -1, np.int64)
+        pos[pose_all] = np.arange(len(pose_all))
+        cols = pos[np.concatenate([mp, pa])]
+        return reduced_onto(I, mp, elim.entries(), pa, i, elim.Dinv, sp.csr_matrix(elim.B[:, pos[mp]]),
+                            elim.G[cols][:, cols], elim.g[cols])
 
     def _eliminate_undoably(self, I: sp.csr_matrix, i: Array, pa: IntArray, mf: IntArray,
                             mp: IntArray) -> tuple[Array, Array]:

@@ -215,7 +215,7 @@ class SparseSolve:
         return out
 
 
-def _feature_rows(I: sp.csr_matrix, feat_idx: IntArray, pose_idx: IntArray) -> tuple[Array, sp.csr_matrix]:
+def feature_blocks(I: sp.csr_matrix, feat_idx: IntArray, pose_idx: IntArray) -> tuple[Array, sp.csr_matrix]:
     """The features' 3x3 information blocks and their coupling to the poses, read from the
     features' rows of ``I`` in one pass (no column fancy-indexing of the sparse matrix).
 
@@ -265,7 +265,7 @@ def _feature_rows(I: sp.csr_matrix, feat_idx: IntArray, pose_idx: IntArray) -> t
     return D, B
 
 
-def _gram_by_blocks(B: sp.csr_matrix, Dinv: Array) -> sp.csr_matrix:
+def gram_by_blocks(B: sp.csr_matrix, Dinv: Array) -> sp.csr_matrix:
     """``B^T D^-1 B`` (``D^-1`` block diagonal, ``(F, 3, 3)``) as ``W^T W`` with ``W = L^T B``,
     ``D^-1 = L L^T``, in scipy's block sparse format of 3x7 feature-pose blocks: the same
     sums as the CSR product, about three times faster (its inner products are the 7x3
@@ -322,21 +322,52 @@ def factorize_onto(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray, keep:
         CtAC, CtAb = factor.project(C, i)
         return factor, I[keep][:, keep].toarray() - CtAC, np.asarray(i, float)[keep] - CtAb
     ps = np.concatenate([pose_idx, keep])
-    D, B = _feature_rows(I, feat_idx, ps)
+    D, B = feature_blocks(I, feat_idx, ps)
     det = np.linalg.det(D)
     if np.any(~np.isfinite(det)) or np.any(det <= 0):
         bad = int(np.argmax(~(det > 0)))
         raise EstimatorError(f"feature block {bad} has no information (seen from one pose only?)")
     Dinv = np.linalg.inv(D)
-    T = sp.csr_matrix(I[ps][:, ps] - _gram_by_blocks(B, Dinv))
-    T = 0.5 * (T + T.T)
-    S = sp.csc_matrix(T[:nm][:, :nm])
-    factor = SchurFactor(pose_idx, feat_idx, Dinv, sp.csr_matrix(B[:, :nm]), sparse_cholesky(S), I.shape[0])
     i = np.asarray(i, float)
-    F = len(Dinv)
-    r = i[ps] - B.T @ np.einsum("fij,fj->fi", Dinv, i[feat_idx].reshape(F, 3)).ravel()
-    Tkm = sp.csr_matrix(T[nm:][:, :nm])
-    b = r[nm:] - Tkm @ factor.S_factor.solve(r[:nm])
+    y = np.einsum("fij,fj->fi", Dinv, i[feat_idx].reshape(len(Dinv), 3)).ravel()
+    return reduced_onto(I, pose_idx, feat_idx, keep, i, Dinv, sp.csr_matrix(B[:, :nm]), gram_by_blocks(B, Dinv),
+                        B.T @ y)
+
+
+def reduced_onto(I: sp.csr_matrix, pose_idx: IntArray, feat_idx: IntArray, keep: IntArray, i: Array,
+                 Dinv: Array, B: sp.csr_matrix, G: sp.spmatrix, g: Array) -> tuple[SchurFactor, Array, Array]:
+    """:func:`factorize_onto` from the features' elimination made already (e.g. kept between
+    rebuilds, :class:`~eifslam.estimation.elimination.FeatureElimination`).
+
+    Parameters
+    ----------
+    I, pose_idx, feat_idx, keep, i : as :func:`factorize_onto` (``keep`` non-empty).
+    Dinv : (F, 3, 3)
+        Inverses of the information blocks of the features ``feat_idx`` (their order).
+    B : CSR (3 F, len(pose_idx))
+        Their coupling to the poses ``pose_idx``.
+    G : sparse (len(ps), len(ps)), ``ps = [pose_idx, keep]``
+        ``B_ps^T D^-1 B_ps`` with ``B_ps`` their coupling to the poses ``ps``.
+    g : (len(ps),)
+        ``B_ps^T D^-1 i_f``.
+
+    Returns
+    -------
+    As :func:`factorize_onto`.
+    """
+    pose_idx, keep = np.asarray(pose_idx, np.int64), np.asarray(keep, np.int64)
+    nm, k = len(pose_idx), len(keep)
+    ps = np.concatenate([pose_idx, keep])
+    i = np.asarray(i, float)
+    T = sp.csr_matrix(I[ps][:, ps] - G)
+    T = 0.5 * (T + T.T)
+    r = i[ps] - np.asarray(g).ravel()
+    if nm == 0:  # only features eliminated: the reduced matrix is the marginal
+        factor = SchurFactor(pose_idx, np.asarray(feat_idx, np.int64), Dinv, sp.csr_matrix(B), None, I.shape[0])
+        return factor, T.toarray(), r
+    factor = SchurFactor(pose_idx, np.asarray(feat_idx, np.int64), Dinv, B, sparse_cholesky(T[:nm][:, :nm]),
+                         I.shape[0])
+    b = r[nm:] - sp.csr_matrix(T[nm:][:, :nm]) @ factor.S_factor.solve(r[:nm])
     order = np.concatenate([np.argsort(factor.S_factor.perm_c), nm + np.arange(k)])
     lu = splu(sp.csc_matrix(T[order][:, order]), permc_spec="NATURAL", diag_pivot_thresh=0.0,
               options=dict(SymmetricMode=True))
@@ -365,13 +396,13 @@ def factorize(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray) -> SchurFa
     n = I.shape[0]
     F = len(feat_idx) // 3
     if F:
-        D, B = _feature_rows(I, np.asarray(feat_idx, np.int64), np.asarray(pose_idx, np.int64))
+        D, B = feature_blocks(I, np.asarray(feat_idx, np.int64), np.asarray(pose_idx, np.int64))
         det = np.linalg.det(D)
         if np.any(~np.isfinite(det)) or np.any(det <= 0):
             bad = int(np.argmax(~(det > 0)))
             raise EstimatorError(f"feature block {bad} has no information (seen from one pose only?)")
         Dinv = np.linalg.inv(D)
-        S = I[pose_idx][:, pose_idx] - _gram_by_blocks(B, Dinv)
+        S = I[pose_idx][:, pose_idx] - gram_by_blocks(B, Dinv)
     else:
         Dinv = np.zeros((0, 3, 3))
         B = sp.csr_matrix((0, len(pose_idx)))
