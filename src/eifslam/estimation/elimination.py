@@ -24,7 +24,7 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from ..errors import EstimatorError
-from .recovery import feature_blocks, gram_by_blocks
+from .recovery import SchurFactor, factorize_onto, feature_blocks, gram_by_blocks, reduced_onto
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -117,6 +117,35 @@ class FeatureElimination:
             self.y = np.concatenate([self.y, y])
         self.G = sp.csr_matrix(self.G)
         self._dirty[:] = False
+
+    def onto(self, I: sp.csr_matrix, i: Array, mp: IntArray, mf: IntArray, pa: IntArray, pose_entries: IntArray,
+             block_start: IntArray) -> tuple[SchurFactor, Array, Array]:
+        """A sparse rebuild's elimination of ``m = mp + mf`` onto the poses ``pa``
+        (:func:`~eifslam.estimation.recovery.factorize_onto`), the features' part from the
+        kept sums after :meth:`update`.
+
+        Parameters
+        ----------
+        I, i : the information now, ``(n, n)`` CSR and ``(n,)``.
+        mp, mf, pa : int arrays
+            Pose and feature entries eliminated, pose entries kept.
+        pose_entries : (N,) int
+            Every pose entry of the state, in state order.
+        block_start : (n,) int
+            First entry of each entry's block.
+
+        Returns
+        -------
+        factor, P, b : as :func:`~eifslam.estimation.recovery.factorize_onto`.
+        """
+        if not (len(mf) and len(pa)):
+            return factorize_onto(I, mp, mf, pa, i)
+        self.update(I, i, np.unique(block_start[mf]), pose_entries)
+        pos = np.full(len(block_start), -1, np.int64)
+        pos[pose_entries] = np.arange(len(pose_entries))
+        cols = pos[np.concatenate([mp, pa])]
+        return reduced_onto(I, mp, self.entries(), pa, i, self.Dinv, sp.csr_matrix(self.B[:, pos[mp]]),
+                            self.G[cols][:, cols], self.g[cols])
 
     def entries(self) -> IntArray:
         """The eliminated features' state entries ``(3 F,)``, in the order of ``B``'s rows."""

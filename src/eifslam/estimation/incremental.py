@@ -43,10 +43,11 @@ the window is rebuilt from the full sparse ``I`` instead (counted as a fallback)
 eliminated part into one feature batch and one dense pose batch when it holds at most
 ``undoable_rebuild_pose_entries`` pose entries (undoable like any marginalisation, so a
 revisit after a rebuild re-activates instead of rebuilding again), else into one sparse
-factorisation (:func:`eifslam.recovery.factorize_onto`); a window over the recent states and
-the touched ones, and every state back-substituted, so ``x`` is the full solution at that
-frame; the frames after it are constant time again. Rebuilding also follows
-:meth:`InformationStore.reset` / ``set`` (smoothing, rescaling).
+factorisation (:func:`eifslam.recovery.reduced_onto`, the features' elimination kept from
+the previous one for those no fusion touched since: :mod:`.elimination`); a window over the
+recent states and the touched ones, and every state back-substituted, so ``x`` is the full
+solution at that frame; the frames after it are constant time again. Rebuilding also
+follows :meth:`InformationStore.reset` / ``set`` (smoothing, rescaling).
 """
 
 from __future__ import annotations
@@ -64,7 +65,6 @@ from scipy.linalg import cho_solve
 from ..errors import ConfigError, EstimatorError, SessionError
 from .information import InformationStore
 from .elimination import FeatureElimination
-from .recovery import factorize_onto, reduced_onto
 from .statedict import sub, take_ids, take_int
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout
 from .reactivation import ReactivatingWindow
@@ -414,7 +414,7 @@ class IncrementalRecovery(ReactivatingWindow):
         else:
             Ia = I[pa]  # (7p, n): the active poses' rows; I_ma is its transpose (I symmetric)
             if len(m):
-                factor, P, bp = self._eliminate_sparse(I, i, mp, mf, pa, pose_all)
+                factor, P, bp = self._elim.onto(I, i, mp, mf, pa, pose_all, self._map.start)
                 self._conds.append(Conditional(m, i[m].copy(), sp.csr_matrix(Ia.T)[m], pa,
                                                factor=factor.restricted(m)))
                 self._owner[m] = 0
@@ -435,22 +435,6 @@ class IncrementalRecovery(ReactivatingWindow):
         self.B = I[fa][:, pa].toarray()
         self.bf = i[fa].copy()
 
-
-    def _eliminate_sparse(self, I: sp.csr_matrix, i: Array, mp: IntArray, mf: IntArray, pa: IntArray,
-                          pose_all: IntArray) -> tuple:
-        """:func:`~eifslam.estimation.recovery.factorize_onto` of ``m = mp + mf`` onto ``pa``,
-        the features' elimination taken from the one kept since the last sparse rebuild
-        (:class:`~eifslam.estimation.elimination.FeatureElimination`: only the features
-        touched or newly eliminated since are read from ``I``)."""
-        if not (len(mf) and len(pa)):
-            return factorize_onto(I, mp, mf, pa, i)
-        elim = self._elim
-        elim.update(I, i, np.unique(self._map.start[mf]), pose_all)
-        pos = np.full(self._map.n, -1, np.int64)
-        pos[pose_all] = np.arange(len(pose_all))
-        cols = pos[np.concatenate([mp, pa])]
-        return reduced_onto(I, mp, elim.entries(), pa, i, elim.Dinv, sp.csr_matrix(elim.B[:, pos[mp]]),
-                            elim.G[cols][:, cols], elim.g[cols])
 
     def _eliminate_undoably(self, I: sp.csr_matrix, i: Array, pa: IntArray, mf: IntArray,
                             mp: IntArray) -> tuple[Array, Array]:
