@@ -168,3 +168,28 @@ def test_factorize_onto_equals_the_dense_schur_complement(n_keep, monkeypatch):
     # the factor is that of I_mm, as factorize's
     r = rng.normal(size=len(m))
     assert np.allclose(factor.solve_entries(r, m), Imm_inv @ r, rtol=1e-9, atol=1e-9 * np.abs(Imm_inv @ r).max())
+
+
+def test_factorize_onto_falls_back_to_the_solves_when_the_ordered_factorisation_fails(monkeypatch):
+    """If SuperLU refuses the factorisation with the kept poses last, the marginal comes
+    from the pose system's solves, and is the same."""
+    import scipy.sparse as sp
+
+    import eifslam.estimation.recovery as recovery
+
+    rng = np.random.default_rng(6)
+    I, pidx, fidx = _slam_information(rng, n_poses=8, n_feats=60)
+    i = rng.normal(size=len(I))
+    keep, mp, mf = pidx[42:], pidx[:42], fidx[:-6]
+    want = recovery.factorize_onto(sp.csr_matrix(I), mp, mf, keep, i)
+    real = recovery.splu
+
+    def refusing(A, permc_spec=None, **kw):
+        if permc_spec == "NATURAL":
+            raise RuntimeError("Factor is exactly singular")
+        return real(A, permc_spec=permc_spec, **kw)
+
+    monkeypatch.setattr(recovery, "splu", refusing)
+    _, P, b = recovery.factorize_onto(sp.csr_matrix(I), mp, mf, keep, i)
+    np.testing.assert_allclose(P, want[1], rtol=0, atol=1e-9 * np.abs(want[1]).max())
+    np.testing.assert_allclose(b, want[2], rtol=0, atol=1e-9 * np.abs(want[2]).max())

@@ -294,7 +294,7 @@ def factorize_onto(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray, keep:
     factorised once more: the trailing block of that ``L U`` is ``P``. On the loop world's
     rebuilds (7,000 factorised pose entries, ~1,000 kept) that is a fraction of the
     solves' time. Falls back to :meth:`SchurFactor.project` if SuperLU reorders the
-    columns it was given.
+    columns it was given or meets a zero pivot in the kept block.
 
     Parameters
     ----------
@@ -369,10 +369,13 @@ def reduced_onto(I: sp.csr_matrix, pose_idx: IntArray, feat_idx: IntArray, keep:
                          I.shape[0])
     b = r[nm:] - sp.csr_matrix(T[nm:][:, :nm]) @ factor.S_factor.solve(r[:nm])
     order = np.concatenate([np.argsort(factor.S_factor.perm_c), nm + np.arange(k)])
-    lu = splu(sp.csc_matrix(T[order][:, order]), permc_spec="NATURAL", diag_pivot_thresh=0.0,
-              options=dict(SymmetricMode=True))
     ident = np.arange(nm + k)
-    if not (np.array_equal(lu.perm_c, ident) and np.array_equal(lu.perm_r, ident)):
+    try:
+        lu = splu(sp.csc_matrix(T[order][:, order]), permc_spec="NATURAL", diag_pivot_thresh=0.0,
+                  options=dict(SymmetricMode=True))
+    except RuntimeError:  # a zero pivot in the kept block (S itself factorised): the solves
+        lu = None
+    if lu is None or not (np.array_equal(lu.perm_c, ident) and np.array_equal(lu.perm_r, ident)):
         CtAC, CtAb = factor.project(sp.csr_matrix(I[keep].T), i)
         return factor, I[keep][:, keep].toarray() - CtAC, i[keep] - CtAb
     L, U = lu.L.tocsc()[:, nm:], lu.U.tocsr()[nm:]  # the trailing blocks' columns of L, rows of U
