@@ -10,6 +10,7 @@ it talks to the front end and the filter through their public methods only.
 from __future__ import annotations
 
 import time
+from itertools import chain
 
 import numpy as np
 from numpy.typing import NDArray
@@ -19,7 +20,6 @@ from ..estimation.measurements import FeatureObservations
 from ..estimation.statedict import take, take_ids
 from ..geometry.camera import PinholeCamera
 from .config import SlamConfig
-from .covisibility import Covisibility
 
 Array = NDArray[np.float64]
 
@@ -71,7 +71,7 @@ class Mapper:
         self.frontend = frontend
         self.filter = backend
         self._track_obs: dict[int, list[tuple[int, Array]]] = {}
-        self._covis: Covisibility | None = Covisibility()  # the pairs of _track_obs (None: derive)
+        self._track_frames: dict[int, set[int]] | None = {}  # per track: frames in _track_obs (None: derive)
         self._colors: dict[int, NDArray[np.uint8]] = {}
 
     # -- sessions -----------------------------------------------------------------
@@ -96,7 +96,7 @@ class Mapper:
         self._track_obs = {}
         for t, k, u in zip(tr.tolist(), fr.tolist(), uv):
             self._track_obs.setdefault(t, []).append((k, u.copy()))
-        self._covis = None
+        self._track_frames = None
         self._colors = {t: c.copy() for t, c in zip(ci.tolist(), col)}
 
     # -- queries ------------------------------------------------------------------
@@ -107,18 +107,20 @@ class Mapper:
     def covisible(self, track_ids) -> dict[int, int]:
         """Frames that observed any of the given tracks (recorded map observations), with
         how many of the tracks each observed: the covisibility of a frame's map tracks."""
-        return self._covisibility().count(track_ids)
+        frames = self._frames_per_track()
+        none: set[int] = set()
+        seen = np.fromiter(chain.from_iterable(frames.get(t, none) for t in np.asarray(track_ids, np.int64)
+                                               .reshape(-1).tolist()), np.int64)
+        f, n = np.unique(seen, return_counts=True)
+        return dict(zip(f.tolist(), n.tolist()))
 
-    def _covisibility(self) -> Covisibility:
-        """The (track, frame) pairs of the recorded observations (kept beside them, derived
+    def _frames_per_track(self) -> dict[int, set[int]]:
+        """The frames of each track's recorded observations (kept beside them, derived
         once after loading a session)."""
-        cv = self.__dict__.get("_covis")
-        if cv is None:
-            cv = self._covis = Covisibility()
-            for t, h in self._track_obs.items():
-                for j, _ in h:
-                    cv.add(t, j)
-        return cv
+        tf = self.__dict__.get("_track_frames")
+        if tf is None:
+            tf = self._track_frames = {t: {j for j, _ in h} for t, h in self._track_obs.items()}
+        return tf
 
     def record_loop(self, k: int, track_ids, uv: Array) -> None:
         """Record the ``Zm`` a verified loop fused into frame *k* (old map features, found
@@ -139,7 +141,7 @@ class Mapper:
             hist = self._track_obs.setdefault(t, [])
             if not any(j == k for j, _ in hist):
                 hist.append((int(k), u.copy()))
-                self._covisibility().add(t, k)
+                self._frames_per_track().setdefault(t, set()).add(int(k))
 
     # -- per frame ----------------------------------------------------------------
     def record_observations(self, k: int) -> tuple[NDArray[np.int64], Array]:
@@ -148,10 +150,10 @@ class Mapper:
         ids, uv = self.frontend.map_observations(k)
         ff = self.frontend.frame(k)
         col = dict(zip(ff.track_ids.tolist(), ff.colors))
-        covis = self._covisibility()
+        frames = self._frames_per_track()
         for t, u in zip(ids.tolist(), uv):
             self._track_obs.setdefault(t, []).append((k, u))
-            covis.add(t, k)
+            frames.setdefault(t, set()).add(k)
             if t not in self._colors and t in col:
                 self._colors[t] = np.asarray(col[t], np.uint8)
         return ids, uv
