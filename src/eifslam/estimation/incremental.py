@@ -196,7 +196,7 @@ class IncrementalRecovery(ReactivatingWindow):
         :meth:`~eifslam.estimation.reactivation.ReactivatingWindow._undo_poses`) instead
         of rebuilding once more: on a sequence that keeps revisiting old places, one
         rebuild per frame otherwise. Larger eliminations use one sparse factorisation
-        (:func:`~eifslam.estimation.recovery.factorize`; ``q x q`` dense would cost
+        (:func:`~eifslam.estimation.recovery.reduced_onto`; ``q x q`` dense would cost
         ``O(q^3)``), which cannot be undone. 0: always the sparse factorisation.
     """
 
