@@ -23,8 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from ..errors import EstimatorError
-from .recovery import SchurFactor, factorize_onto, feature_blocks, gram_by_blocks, reduced_onto
+from .recovery import SchurFactor, factorize_onto, feature_blocks, gram_by_blocks, inverse_blocks, reduced_onto
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -104,10 +103,7 @@ class FeatureElimination:
         add = feat_starts[~np.isin(feat_starts, self.starts)]
         if len(add):
             D, Ba = feature_blocks(I, (add[:, None] + np.arange(3)).ravel(), pose_entries)
-            det = np.linalg.det(D)
-            if not np.all(np.isfinite(det) & (det > 0)):
-                raise EstimatorError("a feature block to eliminate has no information (seen from one pose only?)")
-            Dinv = np.linalg.inv(D)
+            Dinv = inverse_blocks(D)
             y = np.einsum("fij,fj->fi", Dinv, np.asarray(i, float)[add[:, None] + np.arange(3)]).ravel()
             self.G = self.G + gram_by_blocks(Ba, Dinv)
             self.g = self.g + Ba.T @ y

@@ -281,6 +281,29 @@ def gram_by_blocks(B: sp.csr_matrix, Dinv: Array) -> sp.csr_matrix:
     return (Wb.T @ Wb).tocsr()
 
 
+def inverse_blocks(D: Array) -> Array:
+    """Inverses ``(F, 3, 3)`` of the features' information blocks ``D (F, 3, 3)``.
+
+    Raises
+    ------
+    EstimatorError
+        When a block has no information (not positive definite).
+    """
+    det = np.linalg.det(D)
+    if np.any(~np.isfinite(det)) or np.any(det <= 0):
+        bad = int(np.argmax(~(det > 0)))
+        raise EstimatorError(f"feature block {bad} has no information (seen from one pose only?)")
+    return np.linalg.inv(D)
+
+
+def _marginal_by_solves(factor: SchurFactor, I: sp.csr_matrix, keep: IntArray, i: Array
+                        ) -> tuple[SchurFactor, Array, Array]:
+    """:func:`factorize_onto`'s result from ``len(keep) + 1`` solves with ``factor``
+    (:meth:`SchurFactor.project`)."""
+    CtAC, CtAb = factor.project(sp.csr_matrix(I[keep].T), i)
+    return factor, I[keep][:, keep].toarray() - CtAC, np.asarray(i, float)[keep] - CtAb
+
+
 def factorize_onto(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray, keep: IntArray,
                    i: Array) -> tuple[SchurFactor, Array, Array]:
     """Factorise the block of ``I`` on ``pose_idx`` and ``feat_idx`` (as :func:`factorize`)
@@ -317,17 +340,10 @@ def factorize_onto(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray, keep:
     pose_idx, feat_idx, keep = (np.asarray(a, np.int64) for a in (pose_idx, feat_idx, keep))
     nm, k = len(pose_idx), len(keep)
     if not len(feat_idx) or not nm or not k:
-        factor = factorize(I, pose_idx, feat_idx)
-        C = sp.csr_matrix(I[keep].T)
-        CtAC, CtAb = factor.project(C, i)
-        return factor, I[keep][:, keep].toarray() - CtAC, np.asarray(i, float)[keep] - CtAb
+        return _marginal_by_solves(factorize(I, pose_idx, feat_idx), I, keep, i)
     ps = np.concatenate([pose_idx, keep])
     D, B = feature_blocks(I, feat_idx, ps)
-    det = np.linalg.det(D)
-    if np.any(~np.isfinite(det)) or np.any(det <= 0):
-        bad = int(np.argmax(~(det > 0)))
-        raise EstimatorError(f"feature block {bad} has no information (seen from one pose only?)")
-    Dinv = np.linalg.inv(D)
+    Dinv = inverse_blocks(D)
     i = np.asarray(i, float)
     y = np.einsum("fij,fj->fi", Dinv, i[feat_idx].reshape(len(Dinv), 3)).ravel()
     return reduced_onto(I, pose_idx, feat_idx, keep, i, Dinv, sp.csr_matrix(B[:, :nm]), gram_by_blocks(B, Dinv),
@@ -376,8 +392,7 @@ def reduced_onto(I: sp.csr_matrix, pose_idx: IntArray, feat_idx: IntArray, keep:
     except RuntimeError:  # a zero pivot in the kept block (S itself factorised): the solves
         lu = None
     if lu is None or not (np.array_equal(lu.perm_c, ident) and np.array_equal(lu.perm_r, ident)):
-        CtAC, CtAb = factor.project(sp.csr_matrix(I[keep].T), i)
-        return factor, I[keep][:, keep].toarray() - CtAC, i[keep] - CtAb
+        return _marginal_by_solves(factor, I, keep, i)
     L, U = lu.L.tocsc()[:, nm:], lu.U.tocsr()[nm:]  # the trailing blocks' columns of L, rows of U
     P = L[nm:].toarray() @ U[:, nm:].toarray()
     return factor, 0.5 * (P + P.T), np.asarray(b).ravel()
@@ -400,11 +415,7 @@ def factorize(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray) -> SchurFa
     F = len(feat_idx) // 3
     if F:
         D, B = feature_blocks(I, np.asarray(feat_idx, np.int64), np.asarray(pose_idx, np.int64))
-        det = np.linalg.det(D)
-        if np.any(~np.isfinite(det)) or np.any(det <= 0):
-            bad = int(np.argmax(~(det > 0)))
-            raise EstimatorError(f"feature block {bad} has no information (seen from one pose only?)")
-        Dinv = np.linalg.inv(D)
+        Dinv = inverse_blocks(D)
         S = I[pose_idx][:, pose_idx] - gram_by_blocks(B, Dinv)
     else:
         Dinv = np.zeros((0, 3, 3))
