@@ -493,6 +493,29 @@ def test_window_feature_propagate_equals_dense(incremental_run):
     assert np.all(f.feature_propagate([10**9], np.ones((2, 3))) == 0)
 
 
+def test_window_joint_propagate_of_poses_and_features_equals_dense(incremental_run):
+    """``G P G^T`` over a pose and features together (their cross-covariance included)
+    equals the dense one; a pose outside the window gives None."""
+    _, _, f, _, _ = incremental_run
+    fids = np.array(f.layout.feature_ids)
+    active = np.isfinite(f.feature_covariances(fids)[:, 0, 0])
+    pick = np.concatenate([fids[active][:15], fids[~active][:3]])
+    poses = [int(p) for p in f.layout.pose_ids]
+    k_last = poses[-1]
+    G = np.random.default_rng(2).normal(size=(5, 7 + 3 * len(pick)))
+    out = f.propagate([k_last], pick, G)
+    cols = np.concatenate([f.layout.pose_columns([k_last]).ravel(), f.layout.feature_columns(pick[:15]).ravel()])
+    Iinv = np.linalg.inv(f.information_matrix().toarray())
+    Ga = G[:, : 7 + 45]
+    ref = Ga @ Iinv[np.ix_(cols, cols)] @ Ga.T
+    np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-9 * np.abs(ref).max())
+    # the cross terms matter: the pose and the features apart give another answer
+    apart = G[:, :7] @ Iinv[np.ix_(cols[:7], cols[:7])] @ G[:, :7].T + f.feature_propagate(pick, G[:, 7:])
+    assert np.abs(apart - ref).max() > 1e-3 * np.abs(ref).max()
+    assert f.propagate([poses[0]], pick, G) is None  # the first pose left the window long ago
+    assert f.propagate([10**9], pick, G) is None  # not a pose of the state
+
+
 def test_states_measured_while_the_window_is_invalid_stay_in_its_rebuild():
     """Measurements fused after ``I`` was replaced (a loop's ``Zm`` of old features after
     the estimate was moved) count as measurements: the rebuild keeps their states in the

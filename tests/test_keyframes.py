@@ -7,7 +7,7 @@ import pytest
 
 from eifslam.errors import ConfigError
 from eifslam.evaluation.metrics import align_sim3
-from eifslam.estimation.localisation import map_pose_covariance
+from eifslam.estimation.localisation import map_pose_covariance, map_pose_sensitivity
 from eifslam.geometry.rotations import quat_exp, quat_multiply, quat_to_rotmat
 from eifslam.sim.frontend import SyntheticFrontEnd
 from eifslam.sim.synthetic import corridor_scene, default_camera
@@ -54,6 +54,12 @@ def test_map_pose_covariance_matches_finite_differences():
     ref_m = ref + A @ P @ A.T
     assert np.max(np.abs(Cm - ref_m)) < 1e-5 * np.max(np.abs(ref_m))
     assert np.all(np.linalg.eigvalsh(Cm - C) > -1e-12)  # never smaller than given the map
+    # the sensitivity itself, sign included (the joint ZR/ZT gate uses its cross terms)
+    Cs, As = map_pose_sensitivity(cam, p, q, X, sigma)
+    np.testing.assert_allclose(Cs, ref, rtol=1e-6, atol=1e-9 * np.abs(ref).max())
+    np.testing.assert_allclose(As, A, rtol=1e-5, atol=1e-6 * np.abs(A).max())
+    shift = np.tile([0.01, -0.02, 0.005], len(X))  # the whole map moves: the pose moves with it
+    np.testing.assert_allclose((As @ shift)[:3], shift[:3], rtol=1e-4, atol=1e-7)
 
 
 def test_median_parallax():

@@ -451,33 +451,47 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         return out
 
     def feature_propagate(self, track_ids, G: Array) -> Array:
-        """``G P G^T`` for the joint marginal covariance ``P`` of map features, where it is
-        cheap: the incremental window as last recovered
-        (:meth:`~eifslam.estimation.window.ActiveWindow.feature_propagate`, ``O(F)``); full
+        """``G P G^T`` for the joint marginal covariance ``P`` of map features
+        (:meth:`propagate` without poses; zero where it is not cheap)."""
+        out = self.propagate([], track_ids, G)
+        return np.zeros((G.shape[0], G.shape[0])) if out is None else out
+
+    def propagate(self, frame_ids, track_ids, G: Array) -> Array | None:
+        """``G P G^T`` for the joint marginal covariance ``P`` of poses and map features,
+        where it is cheap: the incremental window as last recovered
+        (:meth:`~eifslam.estimation.window.ActiveWindow.propagate`, ``O(F)``); full
         recovery: the cached factorisation. Features outside the window or not in the
-        state count as exact; with neither at hand the result is zero.
+        state count as exact.
 
         Parameters
         ----------
+        frame_ids : (Np,) int, distinct pose ids.
         track_ids : (F,) int, distinct feature ids.
-        G : (k, 3 F) float, 3 columns per feature in the order given.
+        G : (k, 7 Np + 3 F) float, 7 columns per pose (its ``[p, q]`` entries), then 3 per
+            feature, in the order given.
 
         Returns
         -------
-        (k, k) float
+        (k, k) float, or None when a pose is not in the window (or there is no
+        factorisation at hand); without poses, zero then.
         """
+        fr = [int(f) for f in np.asarray(frame_ids, np.int64).reshape(-1)]
         ids = np.asarray(track_ids, np.int64).reshape(-1)
         G = np.asarray(G, float)
+        k, n_p = G.shape[0], POSE_DIM * len(fr)
+        if not all(self.layout.has_pose(f) for f in fr):
+            return None
         have = self.layout.has_features(ids) if len(ids) else np.zeros(0, bool)
-        if not have.any():
-            return np.zeros((G.shape[0], G.shape[0]))
-        cols = self.layout.feature_columns(ids[have])
-        Gh = G.reshape(G.shape[0], len(ids), 3)[:, have].reshape(G.shape[0], -1)
+        pcols = self.layout.pose_columns(fr) if fr else np.zeros((0, POSE_DIM), np.int64)
+        fcols = self.layout.feature_columns(ids[have]) if have.any() else np.zeros((0, 3), np.int64)
+        Gh = np.concatenate([G[:, :n_p], G[:, n_p:].reshape(k, len(ids), 3)[:, have].reshape(k, -1)], 1)
+        if not fr and not have.any():
+            return np.zeros((k, k))
         if self.incremental is not None:
-            return self.incremental.feature_propagate(cols[:, 0], Gh)
+            return self.incremental.propagate(pcols[:, 0], fcols[:, 0], Gh)
         if self._factor is None:
-            return np.zeros((G.shape[0], G.shape[0]))
-        return Gh @ self._factor.covariance(cols.ravel()) @ Gh.T
+            return None if fr else np.zeros((k, k))
+        return Gh @ self._factor.covariance(np.concatenate([pcols.ravel(), fcols.ravel()])) @ Gh.T
 
     def feature_covariance(self, track_id: int) -> Array:
         """3x3 covariance of a map feature."""

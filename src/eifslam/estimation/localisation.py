@@ -127,6 +127,56 @@ class _LazyCovariances:
         return self._P[idx]
 
 
+def map_pose_sensitivity(camera: PinholeCamera, p: Array, q: Array, X: Array, sigma_px: float
+                         ) -> tuple[Array, Array] | None:
+    """A pose localised on known map features: its covariance given the map, and how it
+    moves with the map's error.
+
+    The pose minimising the reprojection errors of the ``Zm`` of ``X`` has the covariance
+    ``C = (sum_n J_n^T J_n / sigma_px^2)^-1`` given the map (``J_n`` with respect to ``[p,
+    dtheta]``, ``dtheta`` the right-multiplied rotation error in the camera frame) and
+    moves by ``A dX`` when the points move by ``dX``, ``A = -C sum_n J_n^T Jf_n /
+    sigma_px^2`` (the residuals' first-order change ``J_n dpose + Jf_n dX`` stays
+    orthogonal to the pose's directions).
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+    p, q : (3,), (4,) camera centre (world frame) and ``q_wc``.
+    X : (N, 3) world points used (the inliers).
+    sigma_px : float
+
+    Returns
+    -------
+    C : (6, 6) covariance of ``[p, dtheta]`` given the map.
+    A : (6, 3 N) sensitivity to the points (a point behind the camera: zero columns).
+    None when there are fewer than 3 points or the information is singular.
+    """
+    from ..geometry.rotations import quat_left_matrix
+
+    q = quat_normalize(np.asarray(q, float))
+    N = len(X)
+    if N < 3:
+        return None
+    c = camera
+    _, Jp, Jf, z = models.feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X,
+                                        c.fx, c.fy, c.cx, c.cy)
+    front = z > 0
+    E = np.zeros((7, 6))  # [dp, dtheta] -> [dp, dq], dq = q ⊗ [0, dtheta / 2]
+    E[:3, :3] = np.eye(3)
+    E[3:, 3:] = 0.5 * quat_left_matrix(q)[:, 1:]
+    J = Jp[front] @ E
+    try:
+        C = np.linalg.inv(np.einsum("nij,nik->jk", J, J) / sigma_px**2)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(C)) or np.min(np.linalg.eigvalsh(0.5 * (C + C.T))) <= 0:
+        return None
+    G = np.zeros((6, 3 * N))  # sum_n J_n^T Jf_n / sigma^2, one 6x3 block per point
+    G.reshape(6, N, 3)[:, front] = np.einsum("nij,nik->njk", J, Jf[front]).transpose(1, 0, 2) / sigma_px**2
+    return 0.5 * (C + C.T), -C @ G
+
+
 def map_pose_covariance(camera: PinholeCamera, p: Array, q: Array, X: Array, sigma_px: float,
                         map_cov: Callable[[Array], Array] | None = None) -> Array | None:
     """Covariance of a pose localised on known map features.
@@ -137,7 +187,7 @@ def map_pose_covariance(camera: PinholeCamera, p: Array, q: Array, X: Array, sig
     :func:`~eifslam.estimation.state.pose_tangent_covariance`). Without ``map_cov`` it is
     conditional on the map (the map's own uncertainty left out); with it, the map's error
     is propagated too: the pose minimising the reprojection errors moves by
-    ``A dX``, ``A = C sum_n Jp_n^T Jf_n / sigma_px^2``, so the covariance is
+    ``A dX`` (:func:`map_pose_sensitivity`), so the covariance is
     ``C + A P_X A^T`` (``C`` the conditional one, ``P_X`` the points' joint covariance;
     the frame's own pixels are not in the map, so the two errors are independent).
 
@@ -157,32 +207,11 @@ def map_pose_covariance(camera: PinholeCamera, p: Array, q: Array, X: Array, sig
     -------
     (6, 6) covariance of ``[p, dtheta]``, or None when the information is singular.
     """
-    from ..geometry.rotations import quat_left_matrix
-
-    q = quat_normalize(np.asarray(q, float))
-    N = len(X)
-    if N < 3:
+    out = map_pose_sensitivity(camera, p, q, X, sigma_px)
+    if out is None:
         return None
-    c = camera
-    _, Jp, Jf, z = models.feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X,
-                                        c.fx, c.fy, c.cx, c.cy)
-    front = z > 0
-    Jp = Jp[front]
-    E = np.zeros((7, 6))  # [dp, dtheta] -> [dp, dq], dq = q ⊗ [0, dtheta / 2]
-    E[:3, :3] = np.eye(3)
-    E[3:, 3:] = 0.5 * quat_left_matrix(q)[:, 1:]
-    J = Jp @ E
-    A = np.einsum("nij,nik->jk", J, J) / sigma_px**2
-    try:
-        C = np.linalg.inv(A)
-    except np.linalg.LinAlgError:
-        return None
-    if not np.all(np.isfinite(C)) or np.min(np.linalg.eigvalsh(0.5 * (C + C.T))) <= 0:
-        return None
+    C, A = out
     if map_cov is not None:
-        G = np.zeros((6, 3 * N))  # sum_n J_n^T Jf_n / sigma^2, one 6x3 block per point
-        G.reshape(6, N, 3)[:, front] = np.einsum("nij,nik->njk", J, Jf[front]).transpose(1, 0, 2) / sigma_px**2
-        A = C @ G
         M = C + np.asarray(map_cov(A), float)
         if np.all(np.isfinite(M)):
             C = M

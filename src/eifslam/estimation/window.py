@@ -268,11 +268,7 @@ class ActiveWindow:
 
     def feature_propagate(self, starts: IntArray, G: Array) -> Array:
         """``G P G^T`` for the joint marginal covariance ``P`` of features, from the window
-        as last solved, without forming ``P``.
-
-        ``P = blockdiag(D^-1) + (D^-1 B) S^-1 (D^-1 B)^T``, so ``G P G^T = sum_f G_f D_f^-1
-        G_f^T + (G D^-1 B) S^-1 (G D^-1 B)^T``: ``O(F)``. Features that were not active at
-        the last :meth:`_solve` count as exact (zero covariance).
+        as last solved, without forming ``P`` (:meth:`propagate` without poses).
 
         Parameters
         ----------
@@ -285,27 +281,64 @@ class ActiveWindow:
         -------
         (k, k) float
         """
+        out = self.propagate(np.zeros(0, np.int64), starts, G)
+        return np.zeros((G.shape[0], G.shape[0])) if out is None else out
+
+    def propagate(self, pose_starts: IntArray, starts: IntArray, G: Array) -> Array | None:
+        """``G P G^T`` for the joint marginal covariance ``P`` of active poses and
+        features, from the window as last solved, without forming ``P``.
+
+        With ``I`` over the window ``[[P, B^T], [B, D]]`` (poses, features) and ``S = P -
+        B^T D^-1 B``, the covariance is ``S^-1`` over the poses, ``-D^-1 B S^-1`` between
+        features and poses and ``D^-1 + D^-1 B S^-1 B^T D^-1`` over the features, so ``G P
+        G^T = sum_f G_f D_f^-1 G_f^T + H S^-1 H^T`` with ``H = G_p - G_f D^-1 B``: ``O(F)``.
+        Features that were not active at the last :meth:`_solve` count as exact (zero
+        covariance, no correlation).
+
+        Parameters
+        ----------
+        pose_starts : (Np,) int
+            State index of each pose's first entry (distinct).
+        starts : (F,) int
+            State index of each feature's first entry (distinct).
+        G : (k, 7 Np + 3 F) float
+            A linear map of the states' errors: 7 columns per pose (``[p, q]``, the state's
+            own entries), then 3 per feature, in the order given.
+
+        Returns
+        -------
+        (k, k) float, or None when a pose was not active at the last solve (or the window
+        is stale and poses were asked for).
+        """
+        pose_starts = np.asarray(pose_starts, np.int64).reshape(-1)
         starts = np.asarray(starts, np.int64).reshape(-1)
         G = np.asarray(G, float)
-        k = G.shape[0]
+        k, n_p = G.shape[0], POSE_DIM * len(pose_starts)
         out = np.zeros((k, k))
-        fidx = getattr(self, "_S_fidx", np.zeros(0, np.int64))
-        if not self._valid or len(fidx) == 0 or len(self._Dinv) != len(fidx) // 3 or not len(starts):
-            return out
-        where = {int(v): i for i, v in enumerate(fidx[::3])}
-        blk = np.array([where.get(int(c), -1) for c in starts], np.int64)
-        have = blk >= 0
-        if not have.any():
-            return out
-        b = blk[have]
-        Gh = G.reshape(k, len(starts), 3)[:, have]  # (k, m, 3)
-        GD = np.einsum("kmi,mij->kmj", Gh, self._Dinv[b])
-        out += np.einsum("kmj,lmj->kl", GD, Gh)
         npw = len(self._S_pidx)
-        if self._S_cho is not None and npw and self._DB.shape == (len(fidx), npw):
-            DB = self._DB.reshape(-1, 3, npw)[b]  # (m, 3, 7p)
-            GDB = np.einsum("kmi,mip->kp", Gh, DB)
-            out += GDB @ cho_solve(self._S_cho, GDB.T)
+        H = np.zeros((k, npw))
+        if len(pose_starts):
+            if not self._valid or self._S_cho is None:
+                return None
+            where_p = {int(v): i for i, v in enumerate(self._S_pidx)}
+            pos = [where_p.get(int(c), -1) for c in (pose_starts[:, None] + np.arange(POSE_DIM)).ravel()]
+            if min(pos) < 0:
+                return None
+            np.add.at(H.T, np.asarray(pos), G[:, :n_p].T)
+        fidx = getattr(self, "_S_fidx", np.zeros(0, np.int64))
+        if self._valid and len(fidx) and len(self._Dinv) == len(fidx) // 3 and len(starts):
+            where = {int(v): i for i, v in enumerate(fidx[::3])}
+            blk = np.array([where.get(int(c), -1) for c in starts], np.int64)
+            have = blk >= 0
+            if have.any():
+                b = blk[have]
+                Gh = G[:, n_p:].reshape(k, len(starts), 3)[:, have]  # (k, m, 3)
+                GD = np.einsum("kmi,mij->kmj", Gh, self._Dinv[b])
+                out += np.einsum("kmj,lmj->kl", GD, Gh)
+                if self._S_cho is not None and npw and self._DB.shape == (len(fidx), npw):
+                    H -= np.einsum("kmi,mip->kp", Gh, self._DB.reshape(-1, 3, npw)[b])
+        if self._S_cho is not None and npw and np.any(H):
+            out += H @ cho_solve(self._S_cho, H.T)
         return 0.5 * (out + out.T)
 
     def full_solution(self, x: Array) -> Array:

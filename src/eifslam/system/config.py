@@ -252,7 +252,7 @@ class SystemConfig:
     recovery: Recovery = Recovery.INCREMENTAL
     window: int = 5
     relative_gate_chi2: float | None = 50.0
-    relative_gate_pose_uncertainty: bool = False
+    relative_gate_pose_uncertainty: bool | str = False
     robust_smoothing: bool = True
     smoothing_noise_estimate: NoiseEstimate = NoiseEstimate.TRACK_LENGTH
     reobserve_radius_px: float | None = None
@@ -303,8 +303,8 @@ class SystemConfig:
         v = self.loop_false_alarm
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 < v < 1.0:
             raise ConfigError(f"system.loop_false_alarm must lie in (0, 1), got {v!r}")
-        if not isinstance(self.relative_gate_pose_uncertainty, bool):
-            raise ConfigError("system.relative_gate_pose_uncertainty must be true or false, "
+        if not (isinstance(self.relative_gate_pose_uncertainty, bool) or self.relative_gate_pose_uncertainty == "joint"):
+            raise ConfigError("system.relative_gate_pose_uncertainty must be true, false or 'joint', "
                               f"got {self.relative_gate_pose_uncertainty!r}")
         if not isinstance(self.wide_baseline, bool):
             raise ConfigError(f"system.wide_baseline must be true or false, got {self.wide_baseline!r}")
