@@ -472,12 +472,10 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
 
         Returns
         -------
-        (k, k) float, or None when a pose is not in the window (or there is no
-        factorisation at hand); without poses, zero then.
+        (k, k) float; None when poses are asked for and neither window nor factorisation has them.
         """
         fr = [int(f) for f in np.asarray(frame_ids, np.int64).reshape(-1)]
-        ids = np.asarray(track_ids, np.int64).reshape(-1)
-        G = np.asarray(G, float)
+        ids, G = np.asarray(track_ids, np.int64).reshape(-1), np.asarray(G, float)
         k, n_p = G.shape[0], POSE_DIM * len(fr)
         if not all(self.layout.has_pose(f) for f in fr):
             return None
