@@ -148,7 +148,8 @@ class FilterConfig:
         Off by default: on real images it also admits wrong matches of uncertain features
         (smoothed ATE, seed 0, SIFT: middlebury-templering 0.00203 -> 0.0036 m,
         strecha-fountain-p11 0.00308 -> 0.00353 m; kitti-seq1 0.0195 -> 0.0177 m and
-        strecha-herzjesu-p25 0.00954 -> 0.00858 m improved).
+        strecha-herzjesu-p25 0.00954 -> 0.00858 m improved); measured again in session 38,
+        kitti-07's scale collapses with it (filter ATE 20.9 m).
     first_estimate_jacobians : FirstEstimates or {"off", "features", "all"} or bool
         Linearise every new ``Zm`` (and, with ``"all"``, ``ZR``/``ZT``) with the Jacobians
         of some states at their *first* estimates (the value they entered the state with;

@@ -69,13 +69,17 @@ class SystemConfig:
         A ``ZR``/``ZT`` pair whose normalised innovation squared (5 DOF) at the pose the
         known map supports exceeds this is not fused (a wrong five-point solution or an
         overconfident covariance); ``None`` fuses every pair.
-    relative_gate_pose_uncertainty : bool
-        Test a ``ZR``/``ZT`` against its covariance plus both poses' uncertainty
+    relative_gate_pose_uncertainty : bool or "joint"
+        Test a ``ZR``/``ZT`` against its covariance plus the poses' uncertainty
         (:func:`~eifslam.system.tracking.relative_gate_statistic`) instead of its
-        covariance alone. Off by default: it brings the synthetic filter's mean NEES closer
-        to its interval (50 runs of 10 frames: 9.5 -> 7.9) but admits relative poses that
-        cost accuracy on real images (filter ATE, seed 0, SIFT: 7scenes-redkitchen-a
-        0.050 -> 0.059 m, kitti-07 0.236 -> 0.250 m).
+        covariance alone: True adds both poses' marginals, ``"joint"`` the uncertainty of
+        the new pose relative to the reference pose (the joint covariance of the reference
+        pose and the map features the new pose was localised on). Off by default. Both
+        make the smoothed NEES consistent on the synthetic corridor (8.57 -> 6.79) but
+        admit wrong relative poses on real images, where the stated 1 px noise is about 5
+        times too large (smoothed ATE, SIFT, seeds 0/1/2: strecha-castle-p30 0.160 / 0.159
+        / 0.149 -> 0.159 / 0.230 / 0.218 m); chosen leave-one-set-out, every set but
+        strecha-castle-p30 gets False (docs/estimator.md, session 38).
     robust_smoothing : bool
         After its passes, smoothing drops the ``ZR``/``ZT`` that fail
         ``relative_gate_chi2`` (worst first), then the ``Zm`` that fail the filter's
