@@ -136,19 +136,25 @@ def test_perturbed_pose_first_estimate_is_kept_by_add_pose():
     np.testing.assert_allclose(f.first_estimates[cols], np.concatenate([[0.1, 0.0, 1.2], q]))
 
 
+def _tracked(frames: int, seed: int):
+    """The system's filter and synthetic front end after ``frames`` frames of the corridor."""
+    from eifslam.sim.frontend import SyntheticFrontEnd
+    from eifslam.system.slam import Slam
+
+    sc = corridor_scene(frames, np.random.default_rng(seed))
+    fe = SyntheticFrontEnd(sc, seed, map_fraction=1.0)
+    slam = Slam(sc.camera, fe.slam_config(), frontend=fe)
+    for k in range(frames):
+        slam.track(k)
+    return slam.filter, fe
+
+
 def test_relative_gate_statistic_adds_the_poses_uncertainty():
     """Against a pose known exactly the statistic is the measurement's own normalised
     innovation squared; the pose uncertainty lowers it (a larger innovation covariance)."""
-    from eifslam.sim.frontend import SyntheticFrontEnd
-    from eifslam.system.slam import Slam
     from eifslam.system.tracking import relative_gate_statistic
 
-    sc = corridor_scene(3, np.random.default_rng(1))
-    fe = SyntheticFrontEnd(sc, 1, map_fraction=1.0)
-    slam = Slam(sc.camera, fe.slam_config(), frontend=fe)
-    for k in range(3):
-        slam.track(k)
-    f = slam.filter
+    f, _ = _tracked(3, 1)
     rp = next(r for r in f.store.relative if r.i == 0)  # pose 0 is fixed by its prior
     _, _, W, innov = f.linearise_relative([rp])
     plain = float(innov[0] @ W[0] @ innov[0])
@@ -162,16 +168,9 @@ def test_joint_relative_gate_statistic_equals_the_dense_one():
     J_j^T + G P G^T`` over pose *i* and the map features jointly (``P`` from the dense
     ``I^-1``); it falls back to ``R`` alone when the window does not have it."""
     from eifslam.geometry.rotations import quat_left_matrix
-    from eifslam.sim.frontend import SyntheticFrontEnd
-    from eifslam.system.slam import Slam
     from eifslam.system.tracking import relative_gate_statistic
 
-    sc = corridor_scene(20, np.random.default_rng(3))
-    fe = SyntheticFrontEnd(sc, 3, map_fraction=1.0)
-    slam = Slam(sc.camera, fe.slam_config(), frontend=fe)
-    for k in range(20):
-        slam.track(k)
-    f = slam.filter
+    f, fe = _tracked(20, 3)
     rp = max(f.store.relative, key=lambda r: r.j)
     ids, _ = fe.map_observations(rp.j)
     ids = np.asarray(ids, np.int64)[f.layout.has_features(ids)]

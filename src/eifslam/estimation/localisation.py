@@ -145,6 +145,7 @@ def map_pose_sensitivity(camera: PinholeCamera, p: Array, q: Array, X: Array, si
     p, q : (3,), (4,) camera centre (world frame) and ``q_wc``.
     X : (N, 3) world points used (the inliers).
     sigma_px : float
+        Standard deviation of a pixel measurement.
 
     Returns
     -------
@@ -193,11 +194,8 @@ def map_pose_covariance(camera: PinholeCamera, p: Array, q: Array, X: Array, sig
 
     Parameters
     ----------
-    camera : PinholeCamera
-    p, q : (3,), (4,) camera centre (world frame) and ``q_wc``.
-    X : (N, 3) world points used (the inliers).
-    sigma_px : float
-        Standard deviation of a pixel measurement.
+    camera, p, q, X, sigma_px
+        As :func:`map_pose_sensitivity`.
     map_cov : callable, optional
         ``G (k, 3 N) -> G P_X G^T (k, k)`` for the joint covariance ``P_X`` of the points
         ``X`` (state units squared), e.g. ``lambda G: filt.feature_propagate(ids, G)``
