@@ -516,6 +516,20 @@ def test_window_joint_propagate_of_poses_and_features_equals_dense(incremental_r
     assert f.propagate([10**9], pick, G) is None  # not a pose of the state
 
 
+def test_joint_propagate_with_full_recovery_equals_dense():
+    """With full recovery the joint ``G P G^T`` comes from the cached factorisation: the
+    dense one over every state asked for (no window: nothing counts as exact)."""
+    sc, m = scene(12, 5)
+    f = run_slam(sc, m, InformationFilter(sc.camera, recovery="full"))
+    fids = np.array(f.layout.feature_ids)[::7][:10]
+    poses = [int(p) for p in f.layout.pose_ids][-2:]
+    G = np.random.default_rng(5).normal(size=(4, 14 + 3 * len(fids)))
+    out = f.propagate(poses, fids, G)
+    cols = np.concatenate([f.layout.pose_columns(poses).ravel(), f.layout.feature_columns(fids).ravel()])
+    ref = G @ np.linalg.inv(f.information_matrix().toarray())[np.ix_(cols, cols)] @ G.T
+    np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-9 * np.abs(ref).max())
+
+
 def test_states_measured_while_the_window_is_invalid_stay_in_its_rebuild():
     """Measurements fused after ``I`` was replaced (a loop's ``Zm`` of old features after
     the estimate was moved) count as measurements: the rebuild keeps their states in the
