@@ -201,17 +201,18 @@ class Tracker:
         return None, last
 
     # -- placing a frame ------------------------------------------------------------
-    def _known_map(self, k: int) -> tuple[NDArray[np.bool_], Array, Array, Callable[[NDArray[np.int64]], Array]]:
+    def _known_map(self, k: int) -> tuple[NDArray[np.bool_], Array, Array, Callable[[NDArray[np.int64]], Array],
+                                          NDArray[np.int64]]:
         """Which of frame *k*'s ``Zm`` are of known features, their positions and pixels,
-        and their marginal covariances on demand (``cov(idx) -> (m, 3, 3)``, NaN where the
-        filter has none cheaply, :meth:`InformationFilter.feature_covariances`). The known
-        features' ids are ``frontend.map_observations(k)[0][known]``."""
+        their marginal covariances on demand (``cov(idx) -> (m, 3, 3)``, NaN where the
+        filter has none cheaply, :meth:`InformationFilter.feature_covariances`), and their
+        ids."""
         filt = self.filter
         ids, uv = self.frontend.map_observations(k)
         known = filt.layout.has_features(ids)
         X = filt.x[filt.layout.feature_columns(ids[known])] if known.any() else np.zeros((0, 3))
         ids_known = np.asarray(ids, np.int64)[known]
-        return known, X, uv[known], lambda idx: filt.feature_covariances(ids_known[idx])
+        return known, X, uv[known], lambda idx: filt.feature_covariances(ids_known[idx]), ids_known
 
     def localise_from_map(self, k: int, timings: dict[str, float], guess: tuple[Array, Array] | None = None,
                           min_features: int | None = None, recover: bool = True) -> bool:
@@ -225,7 +226,7 @@ class Tracker:
         if filt.layout.n_poses < 2 or filt.layout.n_features == 0:
             return False
         t0 = time.perf_counter()
-        known, X, uv, map_cov = self._known_map(k)
+        known, X, uv, map_cov, _ = self._known_map(k)
         n_min = self.config.system.min_map_features if min_features is None else int(min_features)
         if known.sum() < n_min:
             return False
@@ -247,7 +248,7 @@ class Tracker:
         filt, sysc = self.filter, self.config.system
         rp = rpr.measurement
         t0 = time.perf_counter()
-        known, Xk, uvk, map_cov = self._known_map(k)
+        known, Xk, uvk, map_cov, ids_k = self._known_map(k)
         p_i, q_i = filt.pose(rp.i)
         first_step = filt.layout.n_poses == 1
         init = pose_from_relative(p_i, q_i, rp, self.camera, Xk, uvk,
@@ -288,8 +289,7 @@ class Tracker:
                 cov_k = map_pose_covariance(self.camera, p_k, q_k, Xk[inl], self.config.zm_sigma_px)
             elif mode == "joint" and inl is not None:
                 out = map_pose_sensitivity(self.camera, p_k, q_k, Xk[inl], self.config.zm_sigma_px)
-                ids = np.asarray(self.frontend.map_observations(k)[0], np.int64)[known][inl]
-                sens = None if out is None else (*out, ids)
+                sens = None if out is None else (*out, ids_k[inl])
             marginals = mode is True or (mode == "joint" and sens is not None)
             if relative_gate_statistic(filt, rp, cov_k, marginals, sens) > sysc.relative_gate_chi2:
                 use_relative = False
@@ -368,7 +368,7 @@ class Tracker:
                 return False, None
             # the relative pose is a starting point only: with a narrow field of view its
             # rotation can be degrees off, the map's features fix it
-            known, Xk, uvk, _ = self._known_map(j)
+            known, Xk, uvk, _, _ = self._known_map(j)
             p_i, q_i = self.filter.pose(wide.reference)
             p_k, q_k, _ = pose_from_relative(p_i, q_i, rpr.measurement, self.camera, Xk, uvk,
                                              default_step=self._last_step)
