@@ -87,7 +87,9 @@ class PlaceCheck:
     five_point_inliers, five_point_required : the same for the five-point check.
     p, q : (3,), (4,) camera centre and ``q_wc`` of the current frame from the PnP (in
         the old map's frame), or None.
-    keypoints : (M,) indices of the current frame's keypoints that are PnP inliers.
+    keypoints : (M,) indices of the current frame's keypoints that are PnP inliers (also
+        when only the five-point check failed, so that a caller can choose another old
+        frame for it).
     features : (M,) indices (into the given map features) they observe.
     """
 
@@ -252,7 +254,8 @@ def verify_place(camera: PinholeCamera, matcher: DescriptorMatcher, uv_k: Array,
             rot = float(np.degrees(np.arccos(np.clip((np.trace(R5.T @ R_pred) - 1.0) / 2.0, -1.0, 1.0))))
     common = dict(matches=n, inliers=m, required=need, five_point_inliers=n5, five_point_required=need5, p=p, q=q)
     if n5 < need5:
-        return PlaceCheck(False, "too few five-point inliers", **common)
+        return PlaceCheck(False, "too few five-point inliers", keypoints=ia[good].astype(np.int64),
+                          features=ib[good].astype(np.int64), **common)
     if rot > max_rot_deg:
         return PlaceCheck(False, "five-point rotation disagrees with the PnP", **common)
     return PlaceCheck(True, "", keypoints=ia[good].astype(np.int64), features=ib[good].astype(np.int64), **common)

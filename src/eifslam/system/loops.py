@@ -17,7 +17,9 @@ For each frame that became a state of the filter, the :class:`LoopCloser`
    in ``loop_consistency`` consecutive queries;
 4. verifies it geometrically (:func:`~eifslam.frontend.loop_verification.verify_place`:
    PnP on the old map features seen around the candidate and a five-point check with the
-   candidate frame, both with chance-derived inlier counts, and the five-point rotation
+   candidate frame (or, when the candidate's view is too far from this one for enough
+   direct matches, with the old frame that observes the most PnP inliers), both with
+   chance-derived inlier counts, and the five-point rotation
    within ``agree_rotation_deg`` of the rotation the PnP implies when the baseline has
    the parallax a new feature needs);
 5. fuses the PnP inliers as ``Zm`` of the *old* map features in the current pose, not
@@ -259,7 +261,7 @@ class LoopCloser:
             return None
         fids = fids[keep].astype(np.int64)
         D = np.concatenate(descs)[has][first[keep]]
-        fk, fj = fe.frame(k), fe.frame(j)
+        fk = fe.frame(k)
         dk = fe.descriptors(k)
         # match first, the old frame (cheap) and then the place's map: most candidates fail
         # here, and the positions of old (marginalised) features need the complete
@@ -277,11 +279,24 @@ class LoopCloser:
         filt.complete_estimate()
         X = np.zeros((len(fids), 3))
         X[ib] = filt.x[filt.layout.feature_columns(fids[ib])]
-        chk = verify_place(self.camera, fe.matcher, fk.uv, dk, X, D, fj.uv, fe.descriptors(j),
-                           self.config.zm_sigma_px, filt.pose(j)[0], quat_to_rotmat(filt.pose(j)[1]),
-                           max_rot_deg=sysc.agree_rotation_deg, min_parallax_deg=sysc.feature_parallax_deg,
-                           floor=sysc.loop_min_inliers, alpha=sysc.loop_false_alarm, matches=(ia, ib),
-                           direct=direct[:2])
+
+        def verify(f: int, direct_f: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None):
+            return verify_place(self.camera, fe.matcher, fk.uv, dk, X, D, fe.frame(f).uv, fe.descriptors(f),
+                                self.config.zm_sigma_px, filt.pose(f)[0], quat_to_rotmat(filt.pose(f)[1]),
+                                max_rot_deg=sysc.agree_rotation_deg, min_parallax_deg=sysc.feature_parallax_deg,
+                                floor=sysc.loop_min_inliers, alpha=sysc.loop_false_alarm, matches=(ia, ib),
+                                direct=direct_f)
+
+        chk = verify(j, direct[:2])
+        if not chk.ok and chk.reason == "too few five-point inliers":
+            # the place's map fits the frame but the candidate frame's view is too far from
+            # it for direct matches: the five-point check once more, with the old frame
+            # that observes the most PnP inliers (the place's view nearest this one)
+            partner = self._partner(fids[chk.features], lo, hi, j, stored)
+            if partner is not None:
+                chk2 = verify(partner)
+                if chk2.ok:
+                    chk, j = chk2, partner
         if not chk.ok:
             self.rejected.append((k, j, chk.reason))
             return None
@@ -318,6 +333,18 @@ class LoopCloser:
                          chk.five_point_required, len(fused), dp, dq)
         self.closures.append(lc)
         return lc
+
+    def _partner(self, features: NDArray[np.int64], lo: int, hi: int, j: int, stored: set) -> int | None:
+        """The old frame in ``[lo, hi]`` (other than *j*, with a pose and descriptors) that
+        observes the most of ``features`` (track ids); None when none observes any."""
+        best, count = None, 0
+        for f in range(lo, hi + 1):
+            if f == j or f not in stored or not self.filter.layout.has_pose(f):
+                continue
+            n = int(np.isin(self.frontend.frame(f).track_ids, features).sum())
+            if n > count:
+                best, count = f, n
+        return best
 
     def _predicted(self, obs: FeatureObservations) -> bool:
         """Whether the filter's estimate already predicts the loop's ``Zm`` (the median
