@@ -115,6 +115,22 @@ def test_verify_place_recovers_the_pose_and_refuses_wrong_associations():
                       R_wc_j=np.eye(3), floor=20)
     assert not other.ok and other.reason in ("too few five-point inliers",
                                             "five-point rotation disagrees with the PnP")
+    if other.reason == "too few five-point inliers":  # the place passed: its PnP inliers come back
+        assert len(other.features) == len(other.keypoints) == other.inliers >= other.required
+
+
+def test_the_five_point_partner_is_the_frame_observing_the_most_pnp_inliers():
+    """A place verified by PnP but too far from the candidate frame for the five-point check
+    is checked once more with the old frame that sees most of the PnP inliers."""
+    from eifslam.system.loops import most_observing
+
+    tracks = {10: np.arange(0, 50), 11: np.arange(30, 90), 12: np.arange(60, 200), 13: np.arange(500, 600)}
+    inliers = np.arange(40, 100)  # 10 of them in frame 10, 50 in frame 11, 40 in frame 12
+    assert most_observing([10, 11, 12, 13], tracks.__getitem__, inliers) == 11
+    assert most_observing([12, 10], tracks.__getitem__, np.arange(40, 50)) == 10  # 10 against 0
+    assert most_observing([10, 12], tracks.__getitem__, np.arange(60, 80)) == 12
+    assert most_observing([13], tracks.__getitem__, inliers) is None
+    assert most_observing([10, 11], tracks.__getitem__, np.arange(30, 50)) == 10  # a tie: the first
 
 
 def _laps(second: int):

@@ -57,7 +57,7 @@ from .config import SlamConfig
 
 Array = NDArray[np.float64]
 
-__all__ = ["LoopCloser", "LoopClosure"]
+__all__ = ["LoopCloser", "LoopClosure", "most_observing"]
 
 
 @dataclass
@@ -103,6 +103,31 @@ CHI2_2DOF_99 = 9.21
 
 _PLACE_REFUSED = ("too few old map features", "too few matches to the map", "PnP failed", "too few PnP inliers")
 """Verification failures that refuse the candidate's place as a whole (its map features)."""
+
+
+def most_observing(frames, track_ids_of, features: NDArray[np.int64]) -> int | None:
+    """The frame among ``frames`` whose tracks include the most of ``features``.
+
+    Parameters
+    ----------
+    frames : iterable of int
+        Candidate frame ids, in order (ties go to the first).
+    track_ids_of : callable
+        ``f -> (N,) int`` track ids observed in frame ``f``.
+    features : (M,) int
+        Track ids (e.g. a loop's PnP inliers).
+
+    Returns
+    -------
+    int or None
+        None when no frame observes any of them.
+    """
+    best, count = None, 0
+    for f in frames:
+        n = int(np.isin(track_ids_of(f), features).sum())
+        if n > count:
+            best, count = f, n
+    return best
 
 
 class LoopCloser:
@@ -335,16 +360,10 @@ class LoopCloser:
         return lc
 
     def _partner(self, features: NDArray[np.int64], lo: int, hi: int, j: int, stored: set) -> int | None:
-        """The old frame in ``[lo, hi]`` (other than *j*, with a pose and descriptors) that
-        observes the most of ``features`` (track ids); None when none observes any."""
-        best, count = None, 0
-        for f in range(lo, hi + 1):
-            if f == j or f not in stored or not self.filter.layout.has_pose(f):
-                continue
-            n = int(np.isin(self.frontend.frame(f).track_ids, features).sum())
-            if n > count:
-                best, count = f, n
-        return best
+        """The old frame in ``[lo, hi]`` other than *j* (with a pose and descriptors) that
+        observes the most of ``features`` (track ids): :func:`most_observing`."""
+        frames = [f for f in range(lo, hi + 1) if f != j and f in stored and self.filter.layout.has_pose(f)]
+        return most_observing(frames, lambda f: self.frontend.frame(f).track_ids, features)
 
     def _predicted(self, obs: FeatureObservations) -> bool:
         """Whether the filter's estimate already predicts the loop's ``Zm`` (the median
