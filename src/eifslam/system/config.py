@@ -175,8 +175,8 @@ class SystemConfig:
         Place recognition on the filter's frames, geometric verification and fusion of
         the loop's ``Zm`` (:mod:`eifslam.system.loops`); ``--loop-closure`` sets it True,
         ``--no-loop-closure`` False. On by default (docs/loop_closure.md): over the whole
-        loop world it takes the ATE from 0.659 m to 0.018 m and on 7scenes-redkitchen-a
-        (SIFT, smooth) from 0.0542 m to 0.0395 m, and without a loop the estimate is
+        loop world it takes the ATE from 0.659 m to 0.014 m and on 7scenes-redkitchen-a
+        (SIFT, smooth, seeds 0-4) to 0.039-0.042 m, and without a loop the estimate is
         exactly the one without it; the place queries cost a few ms a frame, a loop the
         estimate does not predict relinearises every stored measurement (1-2 s on
         7scenes, 10-20 s at the loop world's end).
