@@ -268,10 +268,11 @@ class LoopCloser:
 
         filt, fe, sysc = self.filter, self.frontend, self.config.system
         stored = set(fe.frame_ids)
-        tids, descs = [], []
+        span, tids, descs = [], [], []
         for f in range(lo, hi + 1):  # the old map features seen around the candidate, with descriptors
             d = fe.descriptors(f) if f in stored and filt.layout.has_pose(f) else None
             if d is not None:
+                span.append(f)
                 tids.append(fe.frame(f).track_ids)
                 descs.append(d)
         if not tids:
@@ -317,7 +318,8 @@ class LoopCloser:
             # the place's map fits the frame but the candidate frame's view is too far from
             # it for direct matches: the five-point check once more, with the old frame
             # that observes the most PnP inliers (the place's view nearest this one)
-            partner = self._partner(fids[chk.features], lo, hi, j, stored)
+            seen = dict(zip(span, tids))
+            partner = most_observing([f for f in span if f != j], seen.__getitem__, fids[chk.features])
             if partner is not None:
                 chk2 = verify(partner)
                 if chk2.ok:
@@ -358,12 +360,6 @@ class LoopCloser:
                          chk.five_point_required, len(fused), dp, dq)
         self.closures.append(lc)
         return lc
-
-    def _partner(self, features: NDArray[np.int64], lo: int, hi: int, j: int, stored: set) -> int | None:
-        """The old frame in ``[lo, hi]`` other than *j* (with a pose and descriptors) that
-        observes the most of ``features`` (track ids): :func:`most_observing`."""
-        frames = [f for f in range(lo, hi + 1) if f != j and f in stored and self.filter.layout.has_pose(f)]
-        return most_observing(frames, lambda f: self.frontend.frame(f).track_ids, features)
 
     def _predicted(self, obs: FeatureObservations) -> bool:
         """Whether the filter's estimate already predicts the loop's ``Zm`` (the median
