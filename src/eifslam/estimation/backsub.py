@@ -88,12 +88,17 @@ class BackSubstitution:
     def clear(self) -> None:
         self._chunks.clear()
 
-    def apply(self, conds: "list[Conditional | None]", x: Array) -> Array:
-        """Recover every eliminated state of ``conds`` (elimination order; ``None`` for
-        an undone slot) into ``x`` (in place), whose active entries hold the window's
-        solution. Returns ``x``."""
+    def apply(self, conds: "list[Conditional | None]", x: Array, start: int = 0) -> Array:
+        """Recover every eliminated state of ``conds[start:]`` (elimination order; ``None``
+        for an undone slot) into ``x`` (in place), whose active entries hold the window's
+        solution. Returns ``x``.
+
+        The separator of a conditional holds only states that were active when it was
+        made, i.e. active now or eliminated later; so the states of the slots from
+        ``start`` on are recovered exactly whatever ``start`` is, and the older ones keep
+        the values ``x`` has."""
         features: dict[int, list[int]] = {}
-        for s in range(len(conds) - 1, -1, -1):
+        for s in range(len(conds) - 1, max(int(start), 0) - 1, -1):
             c = conds[s]
             if c is None:
                 continue

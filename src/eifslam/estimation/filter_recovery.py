@@ -55,6 +55,14 @@ class WindowRecoveryMixin:
             raise EstimatorError("state recovery produced non-finite values")
         return self.x
 
+    def recent_estimate(self, steps: int) -> Array:
+        """Incremental mode: back-substitute the states marginalised in about the last
+        ``steps`` recovery steps (exact for those, bounded cost; older ones keep their
+        values until :meth:`complete_estimate`). Full mode: nothing to do."""
+        if self.incremental is not None and self.incremental.valid:
+            self.incremental.recent_solution(self._x[: self.dim], 2 * int(steps))
+        return self.x
+
     def complete_estimate(self) -> Array:
         """Incremental mode: back-substitute every marginalised state (``O(n)``), so that
         ``x`` equals the full solve of the information as of the last

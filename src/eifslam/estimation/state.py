@@ -294,10 +294,10 @@ def read_features(layout: StateLayout, x: Array) -> tuple[list[int], Array]:
     return ids, x[cols].copy()
 
 
-def pose_tangent_covariance(C: Array, q: Array) -> Array:
-    """Map the 7x7 covariance ``C`` of a pose block ``[p, q]`` to the 6x6 covariance of
-    ``[p, dtheta]``; ``dtheta`` (rad) is the right-multiplied rotation error in the camera
-    frame (``R_true = R_est @ Exp(dtheta)``), ``q (4,)`` the (unnormalised) estimate."""
+def pose_tangent_jacobian(q: Array) -> Array:
+    """(6, 7) map from a change of a pose block ``[p, q]`` to ``[dp, dtheta]``; ``dtheta``
+    (rad) is the right-multiplied rotation error in the camera frame (``R_true = R_est @
+    Exp(dtheta)``), ``q (4,)`` the (unnormalised) estimate."""
     n = np.linalg.norm(q)
     qn = q / n
     # dtheta = 2 vec(q_est^* ⊗ q) for a small change of the normalised quaternion
@@ -305,4 +305,11 @@ def pose_tangent_covariance(C: Array, q: Array) -> Array:
     T = np.zeros((6, 7))
     T[:3, :3] = np.eye(3)
     T[3:, 3:] = G
+    return T
+
+
+def pose_tangent_covariance(C: Array, q: Array) -> Array:
+    """Map the 7x7 covariance ``C`` of a pose block ``[p, q]`` to the 6x6 covariance of
+    ``[p, dtheta]`` (:func:`pose_tangent_jacobian`)."""
+    T = pose_tangent_jacobian(q)
     return T @ C @ T.T

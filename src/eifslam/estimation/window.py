@@ -341,6 +341,19 @@ class ActiveWindow:
             out += H @ cho_solve(self._S_cho, H.T)
         return 0.5 * (out + out.T)
 
+    def recent_solution(self, x: Array, slots: int) -> Array:
+        """:meth:`full_solution` for the states of the last ``slots`` conditionals only
+        (about two a step: one feature batch, one pose batch), exact for those; older
+        marginalised states keep the values ``x`` has. The cost is bounded by ``slots``,
+        not by the size of the state."""
+        if len(self.xp) != len(self.pidx) or len(self.xf) != len(self.fidx):
+            return x
+        x[self.pidx], x[self.fidx] = self.xp, self.xf
+        backsub = self.__dict__.get("_backsub")
+        if backsub is None:
+            backsub = self._backsub = BackSubstitution()
+        return backsub.apply(self._conds, x, start=len(self._conds) - int(slots))
+
     def full_solution(self, x: Array) -> Array:
         """Back-substitute every marginalised state into ``x`` (in place) in ``O(n)``
         (:class:`~eifslam.estimation.backsub.BackSubstitution`: the poses newest first,

@@ -27,6 +27,12 @@ __all__ = ["Mapper", "project"]
 
 _GREY = np.array([200, 200, 200], np.uint8)
 
+#: Keyframes whose marginalised states are back-substituted after each recovery: what
+#: tracking reads (the features in view, the poses that first saw them) is exact, at a cost
+#: that does not grow with the map; older states keep their values until the next complete
+#: back substitution (loop verification, the end of the run).
+RECENT_STEPS = 30
+
 
 def project(camera: PinholeCamera, p: Array, q: Array, X: Array) -> tuple[Array, Array]:
     """Pixels and depths of world points seen from poses (the ``Zm`` model).
@@ -206,7 +212,7 @@ class Mapper:
         without it kitti-07 ended at 0.252 / 0.434 m (filter / smooth) instead of
         0.240 / 0.242 m."""
         self.filter.recover_active()
-        self.filter.complete_estimate()
+        self.filter.recent_estimate(RECENT_STEPS)
 
     def new_features(self, k: int, ids: NDArray[np.int64], uv: Array) -> FeatureObservations:
         """``Zm`` of frame *k* for known features, plus every observation of features that
