@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/backend_scaling.py --out results/backend
+    python -m benchmarks.backend_scaling --out results/backend
 
 A camera walks down a synthetic corridor (:func:`eifslam.sim.synthetic.corridor_scene`,
 features entering and leaving view, no loop) until the state has ``--min-dim`` entries,
@@ -22,7 +22,7 @@ Writes ``OUT/backend_scaling.json``::
      "full_samples": [{"frame", "state_dim", "nnz", "recover_ms", "max_active_diff"}...],
      "loop_closure": {"state_dim", "recover_ms", "full_solve_ms", "frames_after": [...], ...},
      "accuracy": {"online_cost", "batch_cost", "online_ate", "batch_ate", ...},
-     "checks": {...}, "stats": {...}, "settings": {...}}
+     "checks": {...}, "stats": {...}, "settings": {...}, "machine": {...}, "command": "..."}
 
 ``loop_closure``: at the end of the run a relative pose back to frame 1 is fused, its
 recovery is timed against one full sparse solve of the same ``I`` (held to
@@ -75,7 +75,8 @@ from eifslam.sim.frontend import SyntheticFrontEnd  # noqa: E402
 from eifslam.sim.synthetic import corridor_scene, true_relative  # noqa: E402
 from eifslam.system.config import SlamConfig  # noqa: E402
 from eifslam.system.slam import Slam  # noqa: E402
-from _posterior import ate_between, posterior_spread  # noqa: E402
+from ._common import command_line, machine_info  # noqa: E402
+from ._posterior import ate_between, posterior_spread  # noqa: E402
 
 
 class BlockNnzCounter:
@@ -302,6 +303,8 @@ def main(argv: list[str] | None = None) -> int:
     res["stats"] = dict(st, final_state_dim=filt.dim, final_nnz_summed=int(I.nnz), final_nnz_counted=counter.nnz,
                         back_substitution_ms=1e3 * t_back, wall_incremental_s=t_inc, wall_full_s=t_full)
     res["settings"] = dict(vars(args), out=str(args.out), blas_threads=os.environ.get("OPENBLAS_NUM_THREADS"))
+    res["machine"] = machine_info()
+    res["command"] = command_line(__spec__.name, sys.argv[1:] if argv is None else argv)
     (args.out / "backend_scaling.json").write_text(json.dumps(res, indent=1))
     plot(args.out / "backend_scaling.png", inc, full, samples)
     summary(res)
