@@ -1,4 +1,4 @@
-"""Loop closure: loops found, false loops, ATE with and without, fps (issue 13 item 2).
+"""Loop closure: loops found, false loops, ATE with and without, fps.
 
 Usage::
 

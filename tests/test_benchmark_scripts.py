@@ -115,12 +115,12 @@ def test_command_line_and_markdown_header():
     command that reproduces it (``python -m benchmarks.<name> ...``)."""
     command = common.command_line("benchmarks.run_all", ["--out", "a b"])
     assert command == "python -m benchmarks.run_all --out 'a b'"
-    info = dict(date_utc="2024-01-01 00:00 UTC", platform="Linux", cpu_count=4, cpus_usable=2, python="3.11",
+    info = dict(date_utc="Mon 00:00 UTC", platform="Linux", cpu_count=4, cpus_usable=2, python="3.11",
                 numpy="2", scipy="1", opencv="4", eifslam_commit="abc1234")
     md = common.markdown_header("Results", command, info)
     lines = md.splitlines()
     assert lines[0] == "# Results"
-    assert "- Date: 2024-01-01 00:00 UTC" in lines and "- Machine: Linux, 4 CPUs (2 usable)" in lines
+    assert "- Date: Mon 00:00 UTC" in lines and "- Machine: Linux, 4 CPUs (2 usable)" in lines
     assert "- Commit: abc1234" in lines and f"- Command: `{command}`" in lines
     assert "- Commit: unknown" in common.markdown_header("R", command, dict(info, eifslam_commit=None))
     live = common.machine_info()

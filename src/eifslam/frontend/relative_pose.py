@@ -283,8 +283,8 @@ def tighten_to_noise(
     standard deviation of the inliers' Sampson residuals at the refined pose (0.24-0.40 px
     on the SIFT sets), and the pose is refined on the inliers within it. Only on wide
     pairs (median parallax at least :data:`_PLANE_PARALLAX_DEG`): on narrow ones the
-    residuals do not tell a wrong direction apart (in session 32 kitti-07 went to its far
-    minimum on every seed with this on every pair); and only when at least half of the inliers, and
+    residuals do not tell a wrong direction apart (applied to every pair, it sends kitti-07
+    to its far minimum on every seed); and only when at least half of the inliers, and
     ``config.min_inliers``, are kept.
 
     Parameters
@@ -349,7 +349,7 @@ def estimate_relative_pose(
     Returns
     -------
     RelativePoseResult
-        ``ok`` with a :class:`~eifslam.measurements.RelativePose`, or a reason.
+        ``ok`` with a :class:`~eifslam.estimation.measurements.RelativePose`, or a reason.
     """
     t0 = time.perf_counter()
     ui = np.asarray(uv_i, np.float64).reshape(-1, 2)
