@@ -11,8 +11,8 @@ estimate and covariance; at the same frames a copy of the system is smoothed
 (:meth:`Slam.smooth`) and scored the same way.
 
 The mean NEES over ``R`` runs is consistent when it lies inside the 95% interval of
-``chi2(6 R) / R``. ``--set SECTION.KEY=VALUE`` changes a setting (for the diagnosis in
-``docs/estimator.md``: e.g. ``--set filter.gate_chi2=none``).
+``chi2(6 R) / R``. ``--set SECTION.KEY=VALUE`` changes a setting, to see what it does
+to the consistency (e.g. ``--set filter.gate_chi2=none``).
 
 Writes ``DIR/consistency.json``::
 
