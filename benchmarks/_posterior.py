@@ -1,4 +1,4 @@
-"""How far apart two trajectory estimates are, against the posterior's own spread (issue 13).
+"""How far apart two trajectory estimates are, against the posterior's own spread.
 
 ``backend_scaling.py`` compares the filter's final estimate with Gauss-Newton run to
 convergence on the same measurements. On a monocular corridor without a loop both lie in

@@ -19,7 +19,7 @@ however many processes it runs), and each task's wall and CPU seconds, tracked f
 ATE; the median speed-up (sequential / dask); and the bound the
 longest task sets (``max(sum / workers, longest)`` of the sequential task times).
 
-    python benchmarks/batch_speedup.py --data ../shared/datasets --out out/batch_speedup
+    python -m benchmarks.batch_speedup --data ../shared/datasets --out out/batch_speedup
 """
 
 from __future__ import annotations
@@ -32,8 +32,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import command_line, discover_datasets, log, machine_info, write_json  # noqa: E402
+from ._common import command_line, discover_datasets, log, machine_info, write_json
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp"}
 
@@ -102,7 +101,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     speedups = [rd["sequential"]["wall_seconds"] / rd["dask"]["wall_seconds"] for rd in rounds]
     task_s = [[t["seconds"] for t in rd["sequential"]["tasks"]] for rd in rounds]
     bounds = [sum(ts) / max(sum(ts) / args.workers, max(ts)) for ts in task_s]
-    res = dict(machine=machine_info(), command=command_line(__file__, argv), datasets=dict(sets),
+    res = dict(machine=machine_info(), command=command_line(__spec__.name, argv), datasets=dict(sets),
                mode=args.mode, detector=config.frontend.detector, workers=args.workers, rounds=rounds,
                speedup_median=round(statistics.median(speedups), 3), speedups=[round(s, 3) for s in speedups],
                speedup_bound_median=round(statistics.median(bounds), 3),

@@ -11,23 +11,21 @@ estimate and covariance; at the same frames a copy of the system is smoothed
 (:meth:`Slam.smooth`) and scored the same way.
 
 The mean NEES over ``R`` runs is consistent when it lies inside the 95% interval of
-``chi2(6 R) / R``. ``--set SECTION.KEY=VALUE`` changes a setting (for the diagnosis in
-``docs/estimator.md``: e.g. ``--set filter.gate_chi2=none``).
+``chi2(6 R) / R``. ``--set SECTION.KEY=VALUE`` changes a setting, to see what it does
+to the consistency (e.g. ``--set filter.gate_chi2=none``).
 
 Writes ``DIR/consistency.json``::
 
     {"filter": {"mean_nees", "lo", "hi", "runs", "frames"}, "smooth": {...},
-     "per_frame": {"frame": [...], "filter": [...], "smooth": [...]}, "settings": {...}}
+     "per_frame": {"frame": [...], "filter": [...], "smooth": [...]}, "settings": {...},
+     "machine": {...}, "command": "..."}
 
 (``filter``/``smooth`` at the last frame; ``per_frame`` the mean NEES at each checkpoint)
 and ``DIR/consistency.png`` (mean NEES against frame, with the interval).
 
-    python benchmarks/consistency.py --out out/consistency            # 50 runs x 50 frames
-    python benchmarks/consistency.py --out out/consistency --jobs 3   # the same, 3 processes
-    python benchmarks/consistency.py --out out/consistency --runs 5 --frames 20 # quick look
-
-``benchmarks/consistency_diagnosis.py`` separates the filter's error from its covariance
-(docs/estimator.md, Consistency).
+    python -m benchmarks.consistency --out out/consistency            # 50 runs x 50 frames
+    python -m benchmarks.consistency --out out/consistency --jobs 3   # the same, 3 processes
+    python -m benchmarks.consistency --out out/consistency --runs 5 --frames 20 # quick look
 """
 
 from __future__ import annotations
@@ -48,6 +46,8 @@ from eifslam.geometry.rotations import quat_conjugate, quat_log, quat_multiply
 from eifslam.sim.frontend import SyntheticFrontEnd
 from eifslam.sim.synthetic import corridor_scene
 from eifslam.system.slam import Slam
+
+from ._common import command_line, machine_info
 
 DOF = 6
 
@@ -149,7 +149,9 @@ def main(argv: list[str] | None = None) -> int:
         per_frame[mode] = [float(np.nanmean(V[:, c])) for c in range(V.shape[1])]
     res["per_frame"] = per_frame
     res["settings"] = dict(sections=sections, map_fraction=args.map_fraction, seed=args.seed, jobs=args.jobs,
-                           seconds=round(seconds, 1), command=" ".join(sys.argv))
+                           seconds=round(seconds, 1))
+    res["machine"] = machine_info()
+    res["command"] = command_line(__spec__.name, sys.argv[1:] if argv is None else argv)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "consistency.json").write_text(json.dumps(res, indent=1))
     for mode in ("filter", "smooth"):

@@ -12,15 +12,15 @@ recover, EKF = linearise + covariance update.
 The EKF stops after the first frame whose update exceeds ``--ekf-budget-s``.
 
 Writes ``DIR/ekf_vs_eif.json`` (``{"eif": [{"frame", "state_dim", "ms"}...], "eif_full":
-[...], "ekf": [...], "ekf_stopped_at_state_dim": n}``) and ``DIR/ekf_vs_eif.png``.
+[...], "ekf": [...], "ekf_stopped_at_state_dim": n, "machine": {...}, "command": "..."}``) and ``DIR/ekf_vs_eif.png``.
 
-    python benchmarks/ekf_vs_eif.py --out out/ekf_vs_eif
+    python -m benchmarks.ekf_vs_eif --out out/ekf_vs_eif
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +30,8 @@ from eifslam.estimation.filter import InformationFilter
 from eifslam.sim import synthetic
 from eifslam.sim.frontend import SyntheticFrontEnd
 from eifslam.system.slam import Slam
+
+from ._common import command_line, machine_info, write_json
 
 
 def _track(scene, seed: int, backend: str, budget_s: float | None = None) -> list[dict]:
@@ -79,16 +81,17 @@ def plot(res: dict, ax) -> None:
     ax.legend()
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--frames", type=int, default=80)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--ekf-budget-s", type=float, default=2.0)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     res = run(args.frames, args.seed, args.ekf_budget_s)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "ekf_vs_eif.json").write_text(json.dumps(res, indent=1))
+    res["machine"] = machine_info()
+    res["command"] = command_line(__spec__.name, sys.argv[1:] if argv is None else argv)
+    write_json(args.out / "ekf_vs_eif.json", res)
     import matplotlib
 
     matplotlib.use("Agg")

@@ -2,13 +2,16 @@
 
 Usage::
 
-    python benchmarks/frontend.py --data ../shared/datasets/kitti-seq1 --out results/kitti
+    python -m benchmarks.frontend --data ../shared/datasets/kitti-seq1 --out out/frontend
 
 writes ``OUT/frontend.json``::
 
-    {"sift": {"ms_median", "ms_p95", "stages_ms_median": {"detect", "match",
-              "relative_pose", "covariance"}, "pairs", "usable_pairs",
-              "zr_error_deg_median", "zt_error_deg_median", ...}, "orb": {...}, "akaze": {...}}
+    {"detectors": {"sift": {"ms_median", "ms_p95", "stages_ms_median": {"detect", "match",
+                            "relative_pose", "covariance"}, "pairs", "usable_pairs",
+                            "zr_error_deg_median", "zt_error_deg_median", ...}, "orb": {...}},
+     "machine": {...}, "command": "..."}
+
+and prints one table row per detector.
 
 ``ms_*`` is the whole front end per frame: ``add_frame`` plus ``relative_pose`` with the
 frame ``k - step`` (``--step``, default 1). The errors (when the folder has ``groundtruth.tum``) are over the
@@ -34,6 +37,8 @@ from eifslam.geometry.camera import PinholeCamera
 from eifslam.errors import ConfigError
 from eifslam.frontend import FrontEnd, FrontEndConfig
 from eifslam.geometry.rotations import quat_to_rotmat, quat_xyzw_to_wxyz
+
+from ._common import command_line, fmt, machine_info, markdown_table, write_json
 
 
 def load_folder(d: Path, limit: int | None):
@@ -106,7 +111,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, type=Path, help="data-set folder (images/, camera.yaml)")
     ap.add_argument("--out", required=True, type=Path, help="output folder for frontend.json")
-    ap.add_argument("--detectors", default="sift,orb,akaze")
+    ap.add_argument("--detectors", default="sift,orb", help="comma-separated detectors")
     ap.add_argument("--limit", type=int, default=None, help="use the first N images only")
     ap.add_argument("--step", type=int, default=1,
                     help="relative pose of frame k with frame k - step (default: consecutive)")
@@ -125,9 +130,29 @@ def main(argv=None) -> int:
     for det in args.detectors.split(","):
         results[det] = run(det, cam, images, gt, overrides, args.step)
         print(det, json.dumps(results[det]), file=sys.stderr)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "frontend.json").write_text(json.dumps(results, indent=2))
+    write_json(args.out / "frontend.json",
+               dict(detectors=results, machine=machine_info(),
+                    command=command_line(__spec__.name, sys.argv[1:] if argv is None else argv)))
+    print(format_table(results), end="")
     return 0
+
+
+HEADERS = ("detector", "ms median", "ms p95", "detect", "match", "relative_pose", "covariance", "usable pairs",
+           "ZR error deg", "ZT error deg")
+
+
+def format_table(results: dict) -> str:
+    """The per-detector figures of :func:`run` as a Markdown table (errors in the first column)."""
+    rows = []
+    for det, r in results.items():
+        if "error" in r:
+            rows.append([f"{det}: {r['error']}"] + ["–"] * (len(HEADERS) - 1))
+            continue
+        st = r["stages_ms_median"]
+        rows.append([det, fmt(r["ms_median"]), fmt(r["ms_p95"]), *(fmt(st.get(k)) for k in HEADERS[3:7]),
+                     f"{r['usable_pairs']}/{r['pairs']}", fmt(r.get("zr_error_deg_median")),
+                     fmt(r.get("zt_error_deg_median"))])
+    return markdown_table(HEADERS, rows)
 
 
 if __name__ == "__main__":

@@ -1,10 +1,10 @@
-"""Loop closure: loops found, false loops, ATE with and without, fps (issue 13 item 2).
+"""Loop closure: loops found, false loops, ATE with and without, fps.
 
 Usage::
 
-    python benchmarks/loop_closure.py --data ../shared/datasets --out out/loops
-    python benchmarks/loop_closure.py --data ../shared/datasets --out out/loops --only 7scenes-redkitchen-a
-    python benchmarks/loop_closure.py --data out --only loopworld --features orb --out out/lw  # after eifslam render --scene loop --out out/loopworld
+    python -m benchmarks.loop_closure --data ../shared/datasets --out out/loops
+    python -m benchmarks.loop_closure --data ../shared/datasets --out out/loops --only 7scenes-redkitchen-a
+    python -m benchmarks.loop_closure --data out --only loopworld --features orb --out out/lw  # after eifslam render --scene loop --out out/loopworld
 
 For each data set under ``--data`` (the sub-folders with ``images/``) SLAM runs in filter
 mode twice, as ``eifslam run --mode filter`` and ``eifslam run --mode filter
@@ -39,9 +39,7 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _common import command_line, discover_datasets, fmt, log, machine_info, markdown_table, split_list, write_json  # noqa: E402
+from ._common import command_line, discover_datasets, fmt, log, machine_info, markdown_table, split_list, write_json
 
 
 def gt_pose(gt, t: float) -> tuple[np.ndarray, np.ndarray] | None:
@@ -157,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     only = set(split_list(args.only))
     sets = [p for p in discover_datasets(args.data) if not only or p.name in only]
     args.out.mkdir(parents=True, exist_ok=True)
-    doc: dict[str, Any] = {"command": command_line(__file__, argv if argv is not None else sys.argv[1:]),
+    doc: dict[str, Any] = {"command": command_line(__spec__.name, argv if argv is not None else sys.argv[1:]),
                            "machine": machine_info(), "rows": []}
     for src in sets:
         row: dict[str, Any] = {"dataset": src.name, "error": None}

@@ -2,9 +2,9 @@
 
 Usage::
 
-    python benchmarks/loop_world.py --data out/loopworld --out out/loop_world
-    python benchmarks/loop_world.py --data out/lw --out out/lw-bench --detectors orb,sift --mode filter
-    python benchmarks/loop_world.py --data out/lw --out out/lw-bench --run-args="--no-loop-closure"
+    python -m benchmarks.loop_world --data out/loopworld --out out/loop_world
+    python -m benchmarks.loop_world --data out/lw --out out/lw-bench --detectors orb,sift --mode filter
+    python -m benchmarks.loop_world --data out/lw --out out/lw-bench --run-args="--no-loop-closure"
 
 Renders the loop world (``eifslam render --scene loop``, default settings) into ``--data``
 when that folder holds no ``images/``, then runs ``eifslam run DATA --mode MODE --features
@@ -41,9 +41,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _common import (  # noqa: E402
+from ._common import (
     build_row, command_line, fmt, log, machine_info, markdown_table, short_error, split_list, write_json,
 )
 
@@ -243,7 +241,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.places:
         fig = place_figures(data, args.places)
         write_json(out / "places.json", dict(fig, machine=machine_info(),
-                                             command=command_line(__file__, sys.argv[1:] if argv is None else argv)))
+                                             command=command_line(__spec__.name, sys.argv[1:] if argv is None else argv)))
         print(markdown_table(tuple(fig), [[fmt(v) for v in fig.values()]]))
         return 0
     import shlex
@@ -271,7 +269,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if curves:
         plot(rows, curves, out / f"loop_world{tag}.png")
     write_json(out / f"loop_world{tag}.json", dict(rows=rows, machine=machine_info(),
-                                            command=command_line(__file__, sys.argv[1:] if argv is None else argv)))
+                                            command=command_line(__spec__.name, sys.argv[1:] if argv is None else argv)))
     cols = ("detector", "tracked_pct", "fps", "ate_rmse", "end_lap1_error_m", "end_lap2_error_m",
             "lap_gap_median_m", "lap_gap_max_m", "lap_gap_true_max_m")
     print(markdown_table(cols, [[fmt(r.get(c)) for c in cols] for r in rows]))

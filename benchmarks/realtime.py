@@ -2,9 +2,9 @@
 
 Usage::
 
-    python benchmarks/realtime.py --data ../shared/datasets --out out/realtime
-    python benchmarks/realtime.py --data ../shared/datasets --out out/rt --only kitti-seq1 --detectors sift
-    python benchmarks/realtime.py --data ../shared/datasets --out out/rt --only 7scenes-redkitchen-a \\
+    python -m benchmarks.realtime --data ../shared/datasets --out out/realtime
+    python -m benchmarks.realtime --data ../shared/datasets --out out/rt --only kitti-seq1 --detectors sift
+    python -m benchmarks.realtime --data ../shared/datasets --out out/rt --only 7scenes-redkitchen-a \\
         --max-frames 150 --set sift_octave_layers=2 --smooth --tag layers2
 
 For each data set under ``--data`` (the sub-folders with ``images/``; ``builtin`` is the
@@ -29,7 +29,8 @@ records
 Writes ``OUT/<dataset>-<detector>[-<tag>]/`` (``frames.json``: one entry per frame with
 ``ms.total``; ``report.json``, ``trajectory.tum``, ``map.ply``), ``frames.png`` there (per-frame
 milliseconds against frame index), ``OUT/realtime.json`` (the summary rows, machine and
-command; rewritten after every run) and prints a table on stdout. With ``detect`` in a
+command; rewritten after every run), ``OUT/realtime.md`` (the table under the provenance
+header of :func:`benchmarks._common.markdown_header`) and prints the table on stdout. With ``detect`` in a
 worker thread (the default, ``prefetch`` 2), ``total`` is the tracking thread's time per
 frame without detection; ``total + wait`` is the frame's wall time.
 """
@@ -44,10 +45,8 @@ import traceback
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _common import (  # noqa: E402
-    BUILTIN, command_line, discover_datasets, fmt, log, machine_info, markdown_table, prepare_builtin,
+from ._common import (
+    BUILTIN, command_line, discover_datasets, fmt, log, machine_info, markdown_header, markdown_table, prepare_builtin,
     short_error, split_list, write_json,
 )
 
@@ -323,7 +322,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    summary: dict[str, Any] = dict(command=command_line(__file__, sys.argv[1:] if argv is None else argv),
+    summary: dict[str, Any] = dict(command=command_line(__spec__.name, sys.argv[1:] if argv is None else argv),
                                    machine=machine_info(), settings=args.settings, rows=[])
     for name, path in selected:
         if path is None:
@@ -339,7 +338,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 log(f"  {row['frames']} frames in {row['seconds']:.1f} s ({row['fps']:.2f} fps), "
                     f"ATE {fmt(row.get('ate_filter'))}")
     table = format_table(summary["rows"])
-    (out / "realtime.md").write_text(table)
+    (out / "realtime.md").write_text(markdown_header("eifslam speed per frame", summary["command"], summary["machine"])
+                                     + table)
     print(table, end="")
     return 1 if any(r["error"] for r in summary["rows"]) else 0
 

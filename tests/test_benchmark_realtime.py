@@ -1,31 +1,16 @@
-"""Fast tests of ``benchmarks/realtime.py``: its statistics on known numbers, and one smoke
-run on a tiny rendered scene (5 frames of 320x240, SIFT, filter mode)."""
+"""Fast tests of ``benchmarks.realtime``: its statistics on known numbers, and one smoke
+run of ``python -m benchmarks.realtime`` on a tiny rendered scene (5 frames of 320x240,
+SIFT, filter mode)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-from test_benchmark_scripts import _tiny_dataset
+from test_benchmark_scripts import _tiny_dataset, run_module
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
-
-
-def _load(name: str):
-    """Import a benchmark script as a module (benchmarks/ is not a package)."""
-    if str(BENCH) not in sys.path:
-        sys.path.insert(0, str(BENCH))
-    spec = importlib.util.spec_from_file_location(f"bench_{name}", BENCH / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-realtime = _load("realtime")
+from benchmarks import realtime
 
 
 def test_statistics_on_known_numbers():
@@ -53,27 +38,31 @@ def test_parse_settings():
         realtime.parse_settings(["nokey"])
 
 
-def test_realtime_smoke(tmp_path, capsys):
+def test_realtime_smoke(tmp_path):
     data = tmp_path / "data"
     _tiny_dataset(data / "tiny", 5)
     out = tmp_path / "out"
-    rc = realtime.main(["--data", str(data), "--out", str(out), "--only", "tiny,nope", "--detectors", "sift",
-                        "--smooth", "--set", "max_features=500", "--tag", "t"])
+    r = run_module("realtime", "--data", str(data), "--out", str(out), "--only", "tiny,nope", "--detectors", "sift",
+                   "--smooth", "--set", "max_features=500", "--tag", "t")
     summary = json.loads((out / "realtime.json").read_text())
     assert len(summary["rows"]) == 1
     row = summary["rows"][0]
     assert row["error"] is None, row["error"]
-    assert rc == 0
+    assert r.returncode == 0, r.stderr
     assert (row["dataset"], row["detector"], row["frames"], row["settings"]) == ("tiny", "sift", 5, {"max_features": 500})
     assert row["frames_tracked"] >= 4 and np.isfinite(row["ate_filter"]) and np.isfinite(row["ate_smooth"])
     assert row["cpu_seconds"] > 0 and row["cpu_ms_per_frame"] > 0
     assert row["fps"] > 0 and row["camera_hz"] == pytest.approx(2.0)  # the scene: a frame every 0.5 s
     for s in ("detect", "match", "total", "wait"):
         assert row["stages"][s]["n"] >= 4 and row["stages"][s]["p95"] >= row["stages"][s]["median"] > 0
-    assert "--only tiny,nope" in summary["command"] and summary["machine"]["opencv"]
+    assert summary["command"].startswith("python -m benchmarks.realtime ") and "--only tiny,nope" in summary["command"]
+    assert summary["machine"]["opencv"]
     run = out / "tiny-sift-t"
     frames = json.loads((run / "frames.json").read_text())["frames"]
     assert [f["frame"] for f in frames] == list(range(5)) and all(f["ms"]["total"] > 0 for f in frames)
     assert (run / "frames.png").stat().st_size > 1000 and (run / "report.json").exists()
-    assert "| tiny [t] | sift | 5 |" in capsys.readouterr().out
+    assert "| tiny [t] | sift | 5 |" in r.stdout
+    page = (out / "realtime.md").read_text()
+    assert page.startswith("# ") and "- Commit: " in page and "Command: `python -m benchmarks.realtime" in page
+    assert "| tiny [t] | sift | 5 |" in page
     assert realtime.main(["--data", str(data), "--out", str(tmp_path / "o2"), "--only", "nothing"]) == 2

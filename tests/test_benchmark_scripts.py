@@ -1,36 +1,32 @@
-"""Fast tests of ``benchmarks/run_all.py``, ``benchmarks/split_study.py`` and their helpers.
+"""Fast tests of the benchmarks package: its shared helpers, and the benchmarks run as modules.
 
-The pure parts (row building, table formatting, data set discovery, the docs paragraph)
-are tested on fake report dicts; one smoke run of ``run_all.main`` runs real SLAM on a tiny
-rendered scene (4 frames of 320x240) in filter mode with SIFT.
+The pure parts (row building, table formatting, data set discovery, the provenance header)
+are tested on fake report dicts; the smoke runs start ``python -m benchmarks.<name>`` from
+the repository's root, as a user does, on a tiny rendered scene (4 frames of 320x240).
 """
 
 from __future__ import annotations
 
-import importlib.util
 import json
+import os
+import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+from benchmarks import _common as common
+from benchmarks import run_all
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
-def _load(name: str):
-    """Import a benchmark script as a module (benchmarks/ is not a package)."""
-    if str(BENCH) not in sys.path:
-        sys.path.insert(0, str(BENCH))
-    spec = importlib.util.spec_from_file_location(f"bench_{name}", BENCH / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-common = _load("_common")
-run_all = _load("run_all")
-split_study = _load("split_study")
+def run_module(name: str, *args: str) -> subprocess.CompletedProcess:
+    """``python -m benchmarks.<name> args`` from the repository's root (the environment's
+    ``PYTHONPATH`` passed on, so the same eifslam is imported)."""
+    return subprocess.run([sys.executable, "-m", f"benchmarks.{name}", *args], cwd=ROOT, capture_output=True,
+                          text=True, env=dict(os.environ), timeout=600)
 
 
 def fake_report(**over) -> dict:
@@ -101,12 +97,9 @@ def test_discover_and_select(tmp_path):
     assert [n for n, _ in sel] == ["b-set", "builtin"] and missing == ["zzz"]
 
 
-def test_parse_fractions_and_split_list():
+def test_split_list():
     assert common.split_list(" filter, smooth,,ba ") == ["filter", "smooth", "ba"]
-    assert split_study.parse_fractions("1,0.3,0.1,0.3") == [0.1, 0.3, 1.0]
-    for bad in ("0", "1.5", "x", ""):
-        with pytest.raises(ValueError):
-            split_study.parse_fractions(bad)
+    assert common.split_list(None) == [] and common.split_list("") == []
 
 
 def test_backend_ms_median(tmp_path):
@@ -117,49 +110,21 @@ def test_backend_ms_median(tmp_path):
     assert common.backend_ms_median(tmp_path / "missing.json") is None
 
 
-def test_summary_paragraph_and_provenance():
-    rows = [common.build_row("kitti-seq1", "smooth", "sift", fake_report(ate_rmse=a, map_features=m), map_fraction=f)
-            for f, a, m in ((0.1, 0.05, 100), (0.3, 0.03, 300))]
-    rows.append(common.build_row("kitti-seq1", "smooth", "sift", fake_report(frames_tracked=1, ate_rmse=None),
-                                 map_fraction=1.0))
-    text = split_study.summary_paragraph(rows, "smooth", "sift", max_frames=20)
-    assert "keeping 10% of the new tracks in the map instead of 30%" in text
-    assert "100 map features instead of 300" in text and "lowest ATE, 0.03, was at fraction 0.3" in text
-    assert "No ATE at fraction 1 (1/10 frames tracked)" in text and "first 20 frames" in text
-    info = dict(date_utc="2024-01-01 00:00 UTC", platform="Linux", cpu_count=2, cpus_usable=2, python="3.11",
-                numpy="2", scipy="1", opencv="4", eifslam_commit=None)
-    md = common.provenance_markdown(info, "python benchmarks/run_all.py --out x")
-    assert "2024-01-01" in md and "2 CPUs" in md and "`python benchmarks/run_all.py --out x`" in md
-    assert common.command_line(BENCH / "run_all.py", ["--out", "a b"]).endswith("run_all.py --out 'a b'")
-
-
-def test_split_study_with_fake_runner(tmp_path, monkeypatch):
-    """The study's loop, JSON, PNG and docs page, without running SLAM."""
-    data = tmp_path / "data"
-    (data / "tiny" / "images").mkdir(parents=True)
-
-    def fake_runner(seq, config, out_dir, **kw):
-        f = config.frontend.map_fraction
-        out_dir.mkdir(parents=True, exist_ok=True)
-        if f == 1.0:
-            raise RuntimeError("no relative pose")
-        return fake_report(ate_rmse=0.01 / f, map_features=int(1000 * f))
-
-    import eifslam.io
-
-    # open_source is a lazy attribute of eifslam.io: replace it for this test only
-    monkeypatch.setattr(eifslam.io, "open_source", lambda path, camera=None: object(), raising=False)
-    docs = tmp_path / "docs" / "split_study.md"
-    rc = split_study.main(["--data", str(data), "--out", str(tmp_path / "out"), "--datasets", "tiny,nope",
-                           "--fractions", "0.2,0.5,1", "--docs", str(docs)], runner=fake_runner)
-    assert rc == 1  # one run failed
-    res = json.loads((tmp_path / "out" / "split_study.json").read_text())
-    assert [r["map_fraction"] for r in res["rows"]] == [0.2, 0.5, 1.0]
-    assert res["rows"][2]["error"].startswith("RuntimeError")
-    assert (tmp_path / "out" / "split_study.png").stat().st_size > 1000
-    assert (tmp_path / "docs" / "split_study.png").exists()
-    text = docs.read_text()
-    assert "![" in text and "split_study.png" in text and "keeping 20% of the new tracks" in text
+def test_command_line_and_markdown_header():
+    """Every generated Markdown page opens with the date, the machine, the commit and the
+    command that reproduces it (``python -m benchmarks.<name> ...``)."""
+    command = common.command_line("benchmarks.run_all", ["--out", "a b"])
+    assert command == "python -m benchmarks.run_all --out 'a b'"
+    info = dict(date_utc="Mon 00:00 UTC", platform="Linux", cpu_count=4, cpus_usable=2, python="3.11",
+                numpy="2", scipy="1", opencv="4", eifslam_commit="abc1234")
+    md = common.markdown_header("Results", command, info)
+    lines = md.splitlines()
+    assert lines[0] == "# Results"
+    assert "- Date: Mon 00:00 UTC" in lines and "- Machine: Linux, 4 CPUs (2 usable)" in lines
+    assert "- Commit: abc1234" in lines and f"- Command: `{command}`" in lines
+    assert "- Commit: unknown" in common.markdown_header("R", command, dict(info, eifslam_commit=None))
+    live = common.machine_info()
+    assert live["cpu_count"] >= 1 and live["platform"] and live["date_utc"].endswith("UTC")
 
 
 # -- smoke run on a tiny rendered scene -----------------------------------------------------
@@ -180,42 +145,45 @@ def _tiny_dataset(root: Path, n: int = 4) -> Path:
     return root
 
 
-def test_run_all_smoke(tmp_path, capsys):
+def test_run_all_smoke(tmp_path):
+    """``python -m benchmarks.run_all`` on one tiny data set: the row, the run's folder,
+    and both Markdown pages under their provenance header."""
     data = tmp_path / "data"
     _tiny_dataset(data / "tiny")
     (data / "empty").mkdir()  # no images/: not a data set
     out = tmp_path / "out"
     docs = tmp_path / "docs" / "results.md"
     cfg = tmp_path / "c.yaml"  # --config: every run takes these settings (mode and detector from the options)
-    cfg.write_text("system:\n  mode: smooth\nfilter:\n  first_estimate_jacobians: features\n")
-    rc = run_all.main(["--data", str(data), "--out", str(out), "--modes", "filter", "--detectors", "sift",
-                       "--only", "tiny", "--docs", str(docs), "--config", str(cfg)])
+    cfg.write_text("system:\n  mode: smooth\n")
+    r = run_module("run_all", "--data", str(data), "--out", str(out), "--modes", "filter", "--detectors", "sift",
+                   "--only", "tiny", "--docs", str(docs), "--config", str(cfg))
     rows = json.loads((out / "results.json").read_text())
     assert len(rows) == 1
     row = rows[0]
     assert row["error"] is None, row["error"]
-    assert rc == 0
+    assert r.returncode == 0, r.stderr
     assert (row["dataset"], row["mode"], row["detector"], row["frames"]) == ("tiny", "filter", "sift", 4)
     assert row["frames_tracked"] >= 3 and row["ate_rmse"] is not None and np.isfinite(row["ate_rmse"])
     assert row["ms_total"] > 0
     rep = json.loads((out / "tiny-filter-sift" / "report.json").read_text())
-    assert rep["config"]["filter"]["first_estimate_jacobians"] == "features" and rep["config"]["system"]["mode"] == "filter"
+    assert rep["config"]["system"]["mode"] == "filter"
     assert not (out / "tiny-filter-sift" / "report.html").exists()
-    table = (out / "results.md").read_text()
-    assert "| tiny | filter | sift |" in table
-    text = docs.read_text()
-    assert "Command: `python" in text and "--only tiny" in text and "| tiny | filter | sift |" in text
-    assert "| tiny | filter | sift |" in capsys.readouterr().out
+    for page in (out / "results.md", docs):
+        text = page.read_text()
+        assert text.startswith("# ") and "- Date: " in text and "- Machine: " in text and "- Commit: " in text
+        assert "Command: `python -m benchmarks.run_all --data" in text and "--only tiny" in text
+        assert "| tiny | filter | sift |" in text
+    assert "| tiny | filter | sift |" in r.stdout
 
 
 def test_run_all_refuses_a_bad_config_file(tmp_path, capsys):
     cfg = tmp_path / "bad.yaml"
-    cfg.write_text("filter:\n  first_estimate_jacobians: poses\n")
+    cfg.write_text("filter:\n  no_such_setting: 1\n")
     rc = run_all.main(["--data", str(tmp_path), "--out", str(tmp_path / "out"), "--only", "builtin",
                        "--config", str(cfg)])
     assert rc == 2 and not (tmp_path / "out" / "results.json").exists()
     err = capsys.readouterr().err
-    assert "bad.yaml" in err and "first_estimate_jacobians" in err
+    assert "bad.yaml" in err and "no_such_setting" in err
 
 
 def test_run_all_records_failures(tmp_path):
@@ -229,7 +197,8 @@ def test_run_all_records_failures(tmp_path):
 
 
 def test_batch_speedup_picks_the_smallest_sets(tmp_path):
-    batch_speedup = _load("batch_speedup")
+    from benchmarks import batch_speedup
+
     for name, n in (("big", 5), ("small", 2), ("mid", 3), ("other", 3)):
         (tmp_path / name / "images").mkdir(parents=True)
         for k in range(n):
@@ -240,124 +209,64 @@ def test_batch_speedup_picks_the_smallest_sets(tmp_path):
 
 
 def test_consistency_benchmark_writes_its_json(tmp_path):
-    """benchmarks/consistency.py on 2 tiny runs: the JSON the issue asks for, and the
+    """``python -m benchmarks.consistency`` on 2 tiny runs: the JSON and the PNG, and the
     interval of the mean NEES (50 runs of 6 DOF: 5.08-7.00)."""
-    consistency = _load("consistency")
+    from benchmarks import consistency
+
     lo, hi = consistency.interval(50)
     assert lo == pytest.approx(5.08, abs=0.01) and hi == pytest.approx(7.00, abs=0.01)
     assert consistency.parse_sets(["filter.gate_chi2=none", "system.min_feature_parallax_deg=4"]) == \
         {"filter": {"gate_chi2": None}, "system": {"min_feature_parallax_deg": 4}}
-    assert consistency.main(["--out", str(tmp_path), "--runs", "2", "--frames", "6", "--every", "3"]) == 0
+    r = run_module("consistency", "--out", str(tmp_path), "--runs", "2", "--frames", "6", "--every", "3")
+    assert r.returncode == 0, r.stderr
     res = json.loads((tmp_path / "consistency.json").read_text())
     for mode in ("filter", "smooth"):
         assert set(res[mode]) >= {"mean_nees", "lo", "hi", "runs", "frames"}
         assert res[mode]["runs"] == 2 and res[mode]["frames"] == 6
         assert 0 < res[mode]["mean_nees"] < 1e3
+        assert f"{mode}: mean NEES" in r.stdout
     assert res["per_frame"]["frame"] == [2, 5]
+    assert res["command"].startswith("python -m benchmarks.consistency --out") and res["machine"]["cpu_count"]
     assert (tmp_path / "consistency.png").stat().st_size > 0
 
 
-def test_consistency_jobs_and_diagnosis(tmp_path):
-    """``--jobs 2`` gives the same figures as one process; the diagnosis script writes
-    its per-run figures (the filter's NEES there equals the benchmark's at the last frame)."""
-    consistency = _load("consistency")
-    sys.modules[consistency.__name__] = consistency  # the process pool pickles its functions by module
+def test_consistency_jobs_give_the_same_figures(tmp_path):
+    """``--jobs 2`` gives the same figures as one process."""
     args = ["--runs", "2", "--frames", "6", "--every", "6"]
-    assert consistency.main(["--out", str(tmp_path / "one"), *args]) == 0
-    assert consistency.main(["--out", str(tmp_path / "two"), *args, "--jobs", "2"]) == 0
+    for d, extra in (("one", []), ("two", ["--jobs", "2"])):
+        r = run_module("consistency", "--out", str(tmp_path / d), *args, *extra)
+        assert r.returncode == 0, r.stderr
     one, two = (json.loads((tmp_path / d / "consistency.json").read_text()) for d in ("one", "two"))
     assert one["filter"] == two["filter"] and one["smooth"] == two["smooth"]
-    diag = _load("consistency_diagnosis")
-    assert diag.main(["--out", str(tmp_path / "diag"), "--runs", "2", "--frames", "6"]) == 0
-    res = json.loads((tmp_path / "diag" / "diagnosis.json").read_text())
-    assert len(res["runs"]) == 2 and set(res["mean"]) >= {"f", "s", "f_Ps", "s_Pf", "f_Pr", "ef2", "es2"}
-    assert res["mean"]["f"] == pytest.approx(one["filter"]["mean_nees"], rel=1e-9)
-    assert res["mean"]["s"] == pytest.approx(one["smooth"]["mean_nees"], rel=1e-9)
 
 
-def test_consistency_keyframes_smoke(tmp_path):
-    """benchmarks/consistency_keyframes.py on one short slow run writes both settings."""
-    kf = _load("consistency_keyframes")
-    assert kf.main(["--out", str(tmp_path), "--runs", "1", "--frames", "12"]) == 0
-    res = json.loads((tmp_path / "consistency_keyframes.json").read_text())
-    assert set(res) == {"map_pose_uncertainty=False", "map_pose_uncertainty=True"}
-    off, on = res["map_pose_uncertainty=False"], res["map_pose_uncertainty=True"]
-    assert off["keyframes"] == on["keyframes"]  # keyframes are unchanged
-    if off["runs"] and off["between"]["n"]:
-        assert on["between"]["mean_nees"] <= off["between"]["mean_nees"]
+def test_frontend_benchmark_smoke(tmp_path):
+    """``python -m benchmarks.frontend`` on five rendered frames: per-detector timings and
+    relative-pose errors in the JSON, one table row per detector on stdout."""
+    data = _tiny_dataset(tmp_path / "tiny", 5)
+    r = run_module("frontend", "--data", str(data), "--out", str(tmp_path / "out"), "--detectors", "sift")
+    assert r.returncode == 0, r.stderr
+    res = json.loads((tmp_path / "out" / "frontend.json").read_text())
+    sift = res["detectors"]["sift"]
+    assert sift["ms_median"] > 0 and sift["pairs"] == 4 and set(sift["stages_ms_median"]) >= {"detect", "match"}
+    assert res["command"].startswith("python -m benchmarks.frontend") and res["machine"]["platform"]
+    assert "| sift |" in r.stdout
 
 
-def test_loo_study_choice_and_outputs(tmp_path, monkeypatch):
-    """The leave-one-out choice on fake ATEs: a value is chosen on the other sets alone
-    (so the held-out set's own figures never choose it), and the JSON and docs page."""
-    loo = _load("loo_study")
-    assert [loo.parse_value(v) for v in ("0.5", "3", "true", "none", "usac")] == [0.5, 3, True, None, "usac"]
-    assert loo.merge({"a": {"b": 1, "c": 2}}, loo.nested("a.b", 5)) == {"a": {"b": 5, "c": 2}}
-    ref = loo.REFERENCE_ATE
-    # value 2 is twice as good on kitti-seq1 and fountain; value 1 better on castle only
-    ates = {"kitti-seq1": {1: [2 * ref["kitti-seq1"]], 2: [ref["kitti-seq1"]]},
-            "strecha-fountain-p11": {1: [2 * ref["strecha-fountain-p11"]], 2: [ref["strecha-fountain-p11"]]},
-            "strecha-castle-p30": {1: [ref["strecha-castle-p30"]], 2: [3 * ref["strecha-castle-p30"]]}}
-    assert loo.choose(ates, [1, 2], "strecha-castle-p30") == 2  # chosen without castle's own figures
-    assert loo.choose(ates, [1, 2], "kitti-seq1") == 1  # fountain (x2 better) against castle (x3 worse)
-    assert loo.choose({"kitti-seq1": ates["kitti-seq1"]}, [1, 2], "kitti-seq1") is None
-
-    data = tmp_path / "data"
-    for name in ("kitti-seq1", "strecha-fountain-p11"):
-        (data / name / "images").mkdir(parents=True)
-    import eifslam.evaluation.batch as batch
-
-    def fake_serial(tasks, force=False, **kw):
-        out = []
-        for t in tasks:
-            conf = t.config["frontend"]["ransac_confidence"]
-            ate = ref[t.dataset] * (1.0 if conf > 0.9995 else 1.5)
-            out.append({"dataset": t.dataset, "ate_rmse": ate, "tracked": 5, "frames": 5, "status": "done",
-                        "seconds": 1.0})
-        return out
-
-    monkeypatch.setattr(batch, "run_serial", fake_serial)
-    docs = tmp_path / "docs" / "loo.md"
-    rc = loo.main(["--data", str(data), "--out", str(tmp_path / "out"), "--param", "frontend.ransac_confidence",
-                   "--values", "0.999,0.9999", "--seeds", "0,1", "--docs", str(docs)])
-    assert rc == 0
-    res = json.loads((tmp_path / "out" / "loo_study.json").read_text())
-    assert len(res["runs"]) == 2 * 2 * 2
-    assert [t["chosen"] for t in res["table"]] == [0.9999, 0.9999]
-    text = docs.read_text()
-    assert "Leave-one-data-set-out" in text and "| kitti-seq1 | 0.9999 |" in text
-
-
-DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
-
-
-def test_dark_ring_refuses_bad_input(tmp_path):
-    dark_ring = _load("dark_ring")
-    assert dark_ring.main(["--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 2  # no templering
-    if (DATASETS / "middlebury-templering").is_dir():
-        assert dark_ring.main(["--data", str(DATASETS), "--out", str(tmp_path / "o"), "--factors", "2"]) == 2
-
-
-@pytest.mark.skipif(not (DATASETS / "middlebury-templering").is_dir(), reason="../shared/datasets absent")
-def test_dark_ring_writes_its_rings_and_figures(tmp_path, capsys):
-    """Every 10th templering view (4) at 30% brightness: the ring's images are that dark
-    (the 99.99th percentile recorded), both settings run, the JSON holds both rows."""
-    dark_ring = _load("dark_ring")
-    assert dark_ring.main(["--data", str(DATASETS), "--out", str(tmp_path), "--factors", "0.3", "--step", "10",
-                           "--mode", "filter"]) in (0, 1)
-    doc = json.loads((tmp_path / "dark_ring.json").read_text())
-    rows = doc["rows"]
-    assert [r["normalise_gain"] for r in rows] == [False, True]
-    assert all(r["views"] == 4 and 50 < r["level_min"] <= r["level_max"] < 90 for r in rows)
-    assert len(list((tmp_path / "rings" / "x0.3" / "images").iterdir())) == 4
-    assert "| 0.3 | sift |" in capsys.readouterr().out
+def test_every_benchmark_runs_as_a_module():
+    """Each benchmark answers ``--help`` when run as ``python -m benchmarks.<name>``."""
+    names = sorted(p.stem for p in (ROOT / "benchmarks").glob("*.py") if not p.stem.startswith("_"))
+    assert {"run_all", "realtime", "consistency", "loop_closure", "frontend", "backend_scaling"} <= set(names)
+    for name in names:
+        r = run_module(name, "--help")
+        assert r.returncode == 0 and "usage" in r.stdout, (name, r.stderr)
 
 
 def test_loop_scoring_view_overlap_and_same_place():
     """``view_overlap`` (the smaller share of one view the other camera sees) is 1 for one
     camera, 0 for two looking apart and about a half for a sideways shift of half the
     view's width at the depth; ``same_place`` asks each view's centre to be seen."""
-    lc = _load("loop_closure")
+    from benchmarks import loop_closure as lc
     from eifslam.geometry.camera import PinholeCamera
 
     cam = PinholeCamera(fx=320.0, fy=320.0, cx=319.5, cy=239.5, width=640, height=480)
@@ -375,7 +284,7 @@ def test_loop_scoring_view_overlap_and_same_place():
 
 
 def test_posterior_samples_have_the_inverse_information_as_covariance():
-    """``_posterior.posterior_samples`` (the spread backend_scaling.py reads the online
+    """``benchmarks._posterior.posterior_samples`` (the spread backend_scaling reads the online
     estimate against): draws whose sample covariance matches the dense ``I^-1`` of the
     information the last relinearisation built, two-sided; ``ate_between`` ignores a
     similarity transform."""
@@ -383,7 +292,7 @@ def test_posterior_samples_have_the_inverse_information_as_covariance():
     from eifslam.sim.frontend import SyntheticFrontEnd
     from eifslam.system.slam import Slam
 
-    post = _load("_posterior")
+    from benchmarks import _posterior as post
     rng = np.random.default_rng(2)
     sc = synthetic.corridor_scene(6, rng, points_per_metre=6)
     fe = SyntheticFrontEnd(sc, 2, map_fraction=1.0)
@@ -411,7 +320,7 @@ def test_backend_scaling_checks_survive_untimed_fusion():
     """``checks`` on a run too short to time any fusion (every ``fuse_ms`` 0 at first):
     the constant-fusion check fails with a NaN ratio instead of dividing by zero, and a
     flat run passes it."""
-    bs = _load("backend_scaling")
+    from benchmarks import backend_scaling as bs
     rows = [dict(state_dim=7 * (k + 1), fuse_ms=0.0 if k < 5 else 0.6, recover_ms=0.1 * (k + 1),
                  nnz=49 * (k + 1)) for k in range(20)]
     out = bs.checks(rows)["fuse_constant"]

@@ -122,29 +122,3 @@ def test_bad_binary_index_is_refused():
         FrontEndConfig(binary_index="hash")
     with pytest.raises(ValueError, match="binary index"):
         DescriptorIndex(np.zeros((3, 32), np.uint8), binary="hash")
-
-
-def test_matching_benchmark_smoke(tmp_path):
-    """benchmarks/matching.py on five rendered frames: a row per run, the features cached."""
-    import importlib.util
-    import json
-    import sys
-    from pathlib import Path
-
-    from test_benchmark_scripts import _tiny_dataset
-
-    bench = Path(__file__).resolve().parents[1] / "benchmarks"
-    if str(bench) not in sys.path:
-        sys.path.insert(0, str(bench))
-    spec = importlib.util.spec_from_file_location("bench_matching", bench / "matching.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    data = _tiny_dataset(tmp_path / "tiny", 5)
-    for detector, extra in (("sift", []), ("orb", ["--set", "binary_index=lsh"])):
-        assert mod.main(["--data", str(data), "--out", str(tmp_path / "out"), "--detector", detector, *extra]) == 0
-    rows = json.loads((tmp_path / "out" / "matching.json").read_text())["rows"]
-    assert [r["detector"] for r in rows] == ["sift", "orb"] and rows[1]["settings"] == ["binary_index=lsh"]
-    for r in rows:
-        assert r["frames"] == 5 and r["cpu_s"] > 0 and r["tracks"] > 10
-        assert 2.0 <= r["mean_track_length"] <= 5.0
-    assert len(list((tmp_path / "out").glob("features-*.pkl"))) == 2

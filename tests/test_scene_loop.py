@@ -133,17 +133,11 @@ def test_render_loop_command_writes_a_loadable_folder(tmp_path):
 
 
 def test_loop_world_benchmark_drift_figures(tmp_path):
-    """benchmarks/loop_world.py scores drift: none for the truth, the right amount for an
+    """benchmarks.loop_world scores drift: none for the truth, the right amount for an
     estimate whose scale shrinks along the run (known answer)."""
-    import importlib.util
-    from pathlib import Path
-
+    from benchmarks import loop_world as bench
     from eifslam.io.trajectory import write_tum
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "loop_world.py"
-    spec = importlib.util.spec_from_file_location("bench_loop_world", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
     s = make_loop_scene(n_frames=400)
     write_tum(tmp_path / "gt.tum", s.timestamps, s.positions, s.quats_wxyz)
     write_tum(tmp_path / "same.tum", s.timestamps, s.positions, s.quats_wxyz)

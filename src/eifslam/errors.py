@@ -1,5 +1,5 @@
 """Exceptions for bad input. Expected failures (too few matches, no baseline) are values,
-not exceptions; see :mod:`eifslam.measurements`."""
+not exceptions; see :mod:`eifslam.estimation.measurements`."""
 
 from __future__ import annotations
 

@@ -4,13 +4,13 @@ Every track seen in at least two posed frames (both ``Ωp`` and ``Ωm``: "every 
 the map") becomes a 3-D point, triangulated from the current pose estimates; then all
 poses and points are adjusted to minimise the reprojection error of every image
 measurement with :func:`scipy.optimize.least_squares` (``method="trf"``, analytic sparse
-Jacobian from :func:`eifslam.models.feature_model`, ``x_scale="jac"``, Huber loss).
+Jacobian from :func:`eifslam.geometry.models.feature_model`, ``x_scale="jac"``, Huber loss).
 
 Parameters
 ----------
 A pose is its current estimate ``(p0, q0)`` plus an increment ``[dp (3), phi (3)]`` with
 ``p = p0 + dp`` and ``q = q0 ⊗ Exp(phi)`` (``phi`` a rotation vector in the camera frame,
-the convention of :meth:`eifslam.filter.InformationFilter.pose_covariance`). A point is
+the convention of :meth:`eifslam.estimation.filter.InformationFilter.pose_covariance`). A point is
 its position ``X`` (3).
 
 Gauge

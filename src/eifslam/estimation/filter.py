@@ -3,7 +3,7 @@
 The filter keeps the information matrix ``I`` and vector ``i`` of every pose and map
 feature, and the current estimate ``x`` used for linearisation. Fusing a measurement
 (paper eq. 8) touches only the blocks of the states it involves, so ``I`` stays exactly
-sparse. Gauge and quaternion handling follow METHOD.md §6.1-6.2:
+sparse. The gauge and the quaternions are handled as follows:
 
 * the first pose gets a strong prior (position and quaternion) at its initial value;
 * one scale prior fixes the distance between two poses (by default the first two);
@@ -11,7 +11,7 @@ sparse. Gauge and quaternion handling follow METHOD.md §6.1-6.2:
   quaternion's norm, so this is the only information in that direction).
 
 Priors and pseudo-measurements are stored with the measurements, so smoothing
-(:mod:`eifslam.smoothing`) relinearises them too.
+(:mod:`eifslam.estimation.smoothing`) relinearises them too.
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
     config : FilterConfig
     recovery : Recovery or {"incremental", "full"}
         What :meth:`recover_active` (the per-frame recovery) does: solve exactly an active
-        window of recent states and marginalise the rest (:mod:`eifslam.incremental`;
+        window of recent states and marginalise the rest (:mod:`eifslam.estimation.incremental`;
         default, constant time per frame during an exploration, see ``docs/backend.md``),
         or solve the whole system (:meth:`recover`). :meth:`recover` is always the full
         solve; :meth:`complete_estimate` back-substitutes the marginalised states.
@@ -75,7 +75,7 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         self._x = np.zeros(64)
         self._xfe = np.zeros(64)  # first estimates (config.first_estimate_jacobians)
         self._factor: SchurFactor | None = None
-        # -- incremental recovery hook (eifslam.incremental) --
+        # -- incremental recovery hook (eifslam.estimation.incremental) --
         self.recovery = Recovery.parse(recovery, "recovery")
         self.incremental: IncrementalRecovery | None = None
         if self.recovery == Recovery.INCREMENTAL:
@@ -386,7 +386,7 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         self._x[: self.dim] = x
         return self.x
 
-    # -- set from outside (issue 11: bundle adjustment in the system layer) ----------------
+    # -- set from outside (the system layer's bundle adjustment) ---------------------------
     def set_estimate(self, x: Array) -> None:
         """Replace the estimate (the linearisation point) by ``x`` ``(dim,)``, e.g. a
         bundle adjustment's. The information is unchanged; in incremental mode the

@@ -18,7 +18,7 @@ class WindowRecoveryMixin:
     """``recover_active``, ``recover_rebuilt`` and ``complete_estimate`` of
     :class:`~eifslam.estimation.filter.InformationFilter`."""
 
-    # -- incremental recovery (eifslam.incremental) -------------------------------------
+    # -- incremental recovery (eifslam.estimation.incremental) -------------------------------------
     def recover_active(self) -> Array:
         """Per-frame recovery: exact over the active window (``recovery="incremental"``;
         other states keep their last estimate) or :meth:`recover` (``"full"``)."""

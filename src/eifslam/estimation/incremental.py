@@ -43,7 +43,7 @@ the window is rebuilt from the full sparse ``I`` instead (counted as a fallback)
 eliminated part into one feature batch and one dense pose batch when it holds at most
 ``undoable_rebuild_pose_entries`` pose entries (undoable like any marginalisation, so a
 revisit after a rebuild re-activates instead of rebuilding again), else into one sparse
-factorisation (:func:`eifslam.recovery.reduced_onto`, the features' elimination kept from
+factorisation (:func:`eifslam.estimation.recovery.reduced_onto`, the features' elimination kept from
 the previous one for those no fusion touched since: :mod:`.elimination`); a window over the
 recent states and the touched ones, and every state back-substituted, so ``x`` is the full
 solution at that frame; the frames after it are constant time again. Rebuilding also

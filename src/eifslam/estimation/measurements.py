@@ -1,7 +1,7 @@
 """Measurement types exchanged between the front end and the estimator (pure NumPy).
 
 Poses are identified by integer **frame ids**, map features by integer **track ids**;
-:class:`eifslam.layout.StateLayout` maps ids to slices of the state vector.
+:class:`eifslam.estimation.state.StateLayout` maps ids to slices of the state vector.
 
 * :class:`FeatureObservations` is a batch of ``Zm`` (paper eq. 3): undistorted pixels of
   map features (tracks in ``Ωm``) seen from poses.

@@ -1,4 +1,4 @@
-"""How large the ``Zm`` noise is, from the residuals: robust smoothing's gate (issue 14).
+"""How large the ``Zm`` noise is, from the residuals: robust smoothing's gate.
 
 The stated ``sigma_px`` is a guess made before any image is seen. At an estimate fitted to
 the measurements, the normalised innovations squared of the ``Zm`` show the real noise:

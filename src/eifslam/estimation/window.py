@@ -43,7 +43,7 @@ class RecoveryStats:
     steps : recoveries done.
     fallbacks : steps where a measurement touched a marginalised state that could not be
         re-activated (full rebuild), plus solves that failed (see
-        :meth:`eifslam.filter.InformationFilter.recover_active`).
+        :meth:`eifslam.estimation.filter.InformationFilter.recover_active`).
     rebuilds : full rebuilds for any reason (fallbacks, ``I`` reset/set, first use).
     reactivations : steps where a measurement touched marginalised states and they were
         re-activated (their conditionals undone, no rebuild).

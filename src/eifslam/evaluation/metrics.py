@@ -1,6 +1,6 @@
 """Trajectory accuracy against ground truth (pure NumPy / SciPy / evo core).
 
-The measures of ``EVALUATION.md``:
+The measures every run is scored by:
 
 * **ATE**: RMSE of camera-centre errors after a Sim(3) (Umeyama, 7-DoF) alignment of the
   estimate to the ground truth, as ``evo_ape tum groundtruth.tum estimate.tum -as``
@@ -11,7 +11,7 @@ The measures of ``EVALUATION.md``:
   ``ZR`` and ``ZT`` measure. Both are invariant to the Sim(3) alignment.
 
 The Sim(3) is returned so that callers can bring map points into the ground-truth frame.
-This module imports neither OpenCV nor matplotlib (see :mod:`eifslam.plots_eval`).
+This module imports neither OpenCV nor matplotlib (see :mod:`eifslam.evaluation.plots_eval`).
 
 >>> import numpy as np
 >>> from eifslam.io.trajectory import Trajectory

@@ -1,8 +1,8 @@
 """Plots of a SLAM run: trajectory and map, information-matrix sparsity, per-frame timing.
 
 Every function draws on a matplotlib ``ax`` it is given and takes arrays (scikit-image
-style); none reads or writes files or creates figures. :mod:`eifslam.report` lays the
-figures out and saves them. Plots against ground truth are in :mod:`eifslam.plots_eval`.
+style); none reads or writes files or creates figures. :mod:`eifslam.evaluation.report` lays the
+figures out and saves them. Plots against ground truth are in :mod:`eifslam.evaluation.plots_eval`.
 """
 
 from __future__ import annotations
@@ -131,7 +131,7 @@ def plot_map_top(
     points : (M, 3) map features, same frame; M may be 0.
     colors : (M, 3) uint8 RGB of the features, or ``None`` (grey).
     R_wc : (N, 3, 3) camera-to-world rotations; they choose the view direction
-        (see :func:`eifslam.plots_eval.top_view_axes`).
+        (see :func:`eifslam.evaluation.plots_eval.top_view_axes`).
     axes : the two world axes shown, overriding the automatic choice.
     max_points : features drawn at most (random subset beyond that).
     point_size : marker area of the features (points²).
@@ -403,7 +403,7 @@ def plot_aligned_map(
     colors, max_points, point_size, rng : as in :func:`plot_map_top`.
     axes : the two world axes shown; default from the ground-truth poses.
 
-    The title gives the ATE (see :func:`eifslam.plots_eval.plot_evaluation`).
+    The title gives the ATE (see :func:`eifslam.evaluation.plots_eval.plot_evaluation`).
     """
     if axes is None:
         axes = top_view_axes(result.gt_positions, result.gt_rotations)

@@ -1,7 +1,7 @@
 """HTML report of an ``eifslam run`` output folder.
 
 Reads what the run wrote (``trajectory.tum``, ``map.ply``, ``information.npz``,
-``frames.json``, ``report.json``), draws the figures of :mod:`eifslam.plots` into
+``frames.json``, ``report.json``), draws the figures of :mod:`eifslam.evaluation.plots` into
 ``figures/*.png`` and writes ``report.html`` beside them, referring to the pictures by
 relative paths so that the folder can be moved or zipped as a whole. A missing, empty or
 unreadable input leaves its figure out with a note in the page; it never stops the report.

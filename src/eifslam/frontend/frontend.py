@@ -177,7 +177,7 @@ class FrontEnd(FrontEndState, TrackReassociation):
         Returns
         -------
         RelativePoseResult
-            ``measurement`` is a :class:`~eifslam.measurements.RelativePose` with ``i, j``
+            ``measurement`` is a :class:`~eifslam.estimation.measurements.RelativePose` with ``i, j``
             set when ``ok``; otherwise ``reason`` says why.
         """
         if int(i) == int(j):

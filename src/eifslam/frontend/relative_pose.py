@@ -59,11 +59,8 @@ _MAX_REFINE_STEP_DEG = 5.0
 #: had significantly more inliers than the essential matrix's pose 2-4 deg off (the pair's
 #: outliers, near-static image points, fit the wrong pose), and on kitti-07 with SIFT one
 #: at 0.6 deg (47 deg off) replaced a 26-inlier pose 0.9 deg off. The twin poses this is
-#: for come from wide pairs; with this bound every switch on the shared data sets (SIFT at
-#: four contrast thresholds, ORB) moved to a pose nearer the ground truth
-#: (strecha-castle-p30's first pair, 12 deg of parallax: 14 deg off -> 0.2-0.6 deg;
-#: middlebury-templering with ORB, 3-7 at 40 deg: 8.0 -> 0.9 deg), and none happened on
-#: the video sequences.
+#: for come from wide pairs; with this bound every switch on the shared data sets (SIFT and
+#: ORB) moves to a pose nearer the ground truth, and none happens on the video sequences.
 _PLANE_PARALLAX_DEG = 5.0
 #: level of the test that a homography's pose explains more correspondences (:func:`_significantly_more`)
 _SWITCH_ALPHA = 0.05
@@ -283,8 +280,8 @@ def tighten_to_noise(
     standard deviation of the inliers' Sampson residuals at the refined pose (0.24-0.40 px
     on the SIFT sets), and the pose is refined on the inliers within it. Only on wide
     pairs (median parallax at least :data:`_PLANE_PARALLAX_DEG`): on narrow ones the
-    residuals do not tell a wrong direction apart (in session 32 kitti-07 went to its far
-    minimum on every seed with this on every pair); and only when at least half of the inliers, and
+    residuals do not tell a wrong direction apart (applied to every pair, it sends kitti-07
+    to its far minimum on every seed); and only when at least half of the inliers, and
     ``config.min_inliers``, are kept.
 
     Parameters
@@ -349,7 +346,7 @@ def estimate_relative_pose(
     Returns
     -------
     RelativePoseResult
-        ``ok`` with a :class:`~eifslam.measurements.RelativePose`, or a reason.
+        ``ok`` with a :class:`~eifslam.estimation.measurements.RelativePose`, or a reason.
     """
     t0 = time.perf_counter()
     ui = np.asarray(uv_i, np.float64).reshape(-1, 2)

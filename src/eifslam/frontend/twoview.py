@@ -1,6 +1,6 @@
 """Two-view geometry without OpenCV: Sampson residuals, Gauss-Newton refinement, parallax.
 
-Conventions follow :mod:`eifslam.geometry` and :class:`eifslam.measurements.RelativePose`:
+Conventions follow :mod:`eifslam.geometry` and :class:`eifslam.estimation.measurements.RelativePose`:
 ``R = R_ij = R_wi.T @ R_wj`` and ``t = t_ij``, the unit direction of camera *j*'s centre in
 frame *i*. A point ``X_i`` (frame *i*) is ``X_j = R.T @ (X_i - s t)`` in frame *j*, so the
 epipolar constraint on normalised homogeneous points is ``x_i.T @ [t]x @ R @ x_j = 0``.
@@ -91,7 +91,7 @@ def retract(R: Array, t: Array, dx: Array) -> tuple[Array, Array]:
     """Apply a 5-vector error ``[dtheta, dt]`` to a relative pose.
 
     ``R' = R @ Exp(dtheta)``, ``t' = normalize(t + tangent_basis(t) @ dt)``: the error
-    definition of :class:`~eifslam.measurements.RelativePose`.
+    definition of :class:`~eifslam.estimation.measurements.RelativePose`.
 
     Parameters
     ----------

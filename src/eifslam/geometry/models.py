@@ -4,7 +4,7 @@ Every model returns the predicted measurement ``h`` and its Jacobians with respe
 *full* 7-vector of each pose involved (``[p (3), q (4)]``) and the 3-vector of a feature.
 All models use the normalised quaternion ``q / |q|``, so they are invariant to the
 quaternion's norm; the norm itself is fixed by a pseudo-measurement
-(:func:`quat_norm_model`), see METHOD.md §6.2.
+(:func:`quat_norm_model`).
 
 Models
 ------
@@ -13,7 +13,7 @@ Models
                        (zero at the measurement, equal to ``dtheta`` to first order), so the
                        rank-3 rotation uncertainty has a full-rank 3x3 covariance.
 ``translation_model``  ``ZT`` (paper eqs. 5-6): ``[x/z, y/z]`` of ``R_wi.T (p_j - p_i)``.
-``bearing_model``      non-singular ``ZT`` (METHOD.md §6.3): tangent-plane components
+``bearing_model``      non-singular ``ZT``: tangent-plane components
                        ``B(t_meas).T @ X / |X|`` of the unit direction; zero at the
                        measurement, defined for sideways motion.
 """
@@ -180,8 +180,8 @@ def bearing_model(
     """Non-singular ``ZT``: tangent components of the unit direction to camera *j*.
 
     ``h = B(t_meas).T @ X / |X|`` with ``X = R_wi.T (p_j - p_i)`` and ``B`` from
-    :func:`eifslam.geometry.tangent_basis`; the measurement is ``z = 0`` and its
-    covariance is that of ``dt`` in :class:`eifslam.measurements.RelativePose`.
+    :func:`eifslam.geometry.rotations.tangent_basis`; the measurement is ``z = 0`` and its
+    covariance is that of ``dt`` in :class:`eifslam.estimation.measurements.RelativePose`.
 
     Returns
     -------
@@ -205,7 +205,7 @@ def rotation_model(q_i: Array, q_j: Array, q_meas: Array) -> tuple[Array, Array,
 
     ``s = ±1`` picks the hemisphere with non-negative scalar part. The measurement is
     ``z = 0``; to first order ``h`` equals ``dtheta`` of
-    :class:`eifslam.measurements.RelativePose`, whose covariance applies directly.
+    :class:`eifslam.estimation.measurements.RelativePose`, whose covariance applies directly.
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""Camera calibration files → :class:`~eifslam.camera.PinholeCamera`.
+"""Camera calibration files → :class:`~eifslam.geometry.camera.PinholeCamera`.
 
 Formats, sniffed by :func:`load_camera`:
 

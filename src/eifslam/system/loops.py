@@ -257,7 +257,7 @@ class LoopCloser:
         inliers) and those reached through a loop frame. A few long tracks re-observed
         across a revisit (SIFT keeps some over hundreds of frames) do not join two places:
         the loop they hint at still has to be found and verified. Without any such frame,
-        every covisible frame counts (the old rule, the cautious one)."""
+        every covisible frame counts (the cautious rule)."""
         m = self.config.system.loop_min_inliers
         joined = {f for f, n in covis.items() if n >= m} | hop
         return joined if joined else set(covis)

@@ -23,9 +23,9 @@ def retry_wide(slam, images: Callable[[int], np.ndarray], max_rounds: int = 3) -
     the tracks both ends of a match land on). The first placed is localised on the known
     map features it now sees, starting from the relative pose of its best matches
     (:meth:`~eifslam.system.tracking.Tracker.place_wide`). Each later one is matched to
-    its nearest known frames and to that first reference across the gap (tracks the run
-    lost, and more of the old map's features in view: templering's ATE 0.0041 -> 0.0038;
-    0.0040 with the first reference alone) and placed as in the run: a relative pose to
+    its nearest known frames and to that first reference across the gap (which brings
+    back tracks the run lost, and more of the old map's features in view) and placed as
+    in the run: a relative pose to
     the nearest known frames, else the map, else from its own wide-baseline matches.
     A frame that fails is tried again in the next round (at most ``max_rounds``) when the
     round placed others (its nearest known frames may have changed); the affine features

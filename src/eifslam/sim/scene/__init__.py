@@ -7,7 +7,7 @@ Pure parts (importing them loads neither OpenCV nor matplotlib):
 Rendering (:func:`render_frame`, :func:`render_scene`) uses OpenCV and is imported lazily,
 on first access.
 
->>> from eifslam.scene import make_scene
+>>> from eifslam.sim.scene import make_scene
 >>> scene = make_scene(n_frames=54)
 >>> scene.positions.shape, scene.quats_wxyz.shape
 ((54, 3), (54, 4))

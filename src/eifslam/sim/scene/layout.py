@@ -16,7 +16,7 @@ World frame (metres)
   z forward) into the world, as in :mod:`eifslam.geometry`.
 
 Everything visible is a planar, textured, one-sided rectangle (:class:`Surface`); the
-texture itself is made by :mod:`eifslam.scene.textures` when rendering. This module is
+texture itself is made by :mod:`eifslam.sim.scene.textures` when rendering. This module is
 pure NumPy: it imports neither OpenCV nor matplotlib.
 """
 

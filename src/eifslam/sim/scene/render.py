@@ -1,6 +1,6 @@
 """Render the built-in scene with the exact pinhole model, and write it as a data set folder.
 
-Each :class:`~eifslam.scene.layout.Surface` is a textured plane. For a texture texel
+Each :class:`~eifslam.sim.scene.layout.Surface` is a textured plane. For a texture texel
 ``(i, j)`` centred at ``(s, t) = ((i + 0.5) du, (j + 0.5) dv)`` on the plane, the pixel is
 given exactly by the plane-induced homography ``H = K [du u_c, dv v_c, X0_c]`` (camera-
 frame axes and texel-centre origin), so :func:`cv2.warpPerspective` (which samples the
@@ -12,7 +12,7 @@ inverse depth and are discarded, so faces crossing the camera plane need no clip
 beyond a bounding box. Textures are mip-mapped (area-averaged halving) and the level is picked
 per face from the texture-to-image scale at the centre of its visible part, which keeps far faces from aliasing.
 
-Image conventions as in :mod:`eifslam.camera`: pixel centres at integer coordinates.
+Image conventions as in :mod:`eifslam.geometry.camera`: pixel centres at integer coordinates.
 """
 
 from __future__ import annotations
