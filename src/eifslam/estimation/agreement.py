@@ -23,7 +23,7 @@ from ..geometry.rotations import quat_conjugate, quat_log, quat_multiply, quat_t
 
 Array = NDArray[np.float64]
 
-__all__ = ["relative_pose_jacobians", "relative_pose_innovation", "pose_agreement", "chi2_quantile"]
+__all__ = ["relative_pose_jacobians", "relative_pose_innovation", "pose_agreement", "rotation_agreement", "chi2_quantile"]
 
 
 def chi2_quantile(dof: int, false_alarm: float) -> float:
@@ -93,3 +93,18 @@ def pose_agreement(p_j: Array, q_j: Array, p_k: Array, q_k: Array, C_jk: Array,
         return float(v @ np.linalg.solve(0.5 * (S + S.T), v)), v
     except np.linalg.LinAlgError:
         return float("inf"), v
+
+
+def rotation_agreement(q_k: Array, q_m: Array, C_k: Array, C_m: Array) -> float:
+    """Normalised innovation squared of a measured orientation ``q_m`` of frame *k* against
+    its estimate ``q_k`` (``q_wc``, (4,)): ``phi^T (C_k + C_m)^-1 phi`` with ``phi =
+    log(R_k^T R_m)`` (3,), rad, in *k*'s camera frame; ``C_k``, ``C_m`` (3, 3) the
+    covariances of the two (same frame). ``inf`` when singular or not finite."""
+    phi = 2.0 * quat_log(quat_multiply(quat_conjugate(np.asarray(q_k, float)), np.asarray(q_m, float)))
+    S = np.asarray(C_k, float) + np.asarray(C_m, float)
+    if not (np.all(np.isfinite(S)) and np.all(np.isfinite(phi))):
+        return float("inf")
+    try:
+        return float(phi @ np.linalg.solve(0.5 * (S + S.T), phi))
+    except np.linalg.LinAlgError:
+        return float("inf")

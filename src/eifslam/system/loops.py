@@ -53,6 +53,7 @@ from ..estimation.measurements import FeatureObservations
 from ..estimation.statedict import sub, take
 from ..frontend.places import PlaceIndex
 from ..geometry.camera import PinholeCamera
+from ..geometry.rotations import quat_conjugate, quat_multiply, quat_to_rotmat
 from .config import SlamConfig
 
 Array = NDArray[np.float64]
@@ -100,6 +101,25 @@ _FIELDS = [f for f in LoopClosure.__dataclass_fields__]
 
 CHI2_2DOF_99 = 9.21
 """99% quantile of chi-square with 2 degrees of freedom (a pixel residual)."""
+
+AGREEMENT_FALSE_ALARM = 1e-3
+"""Probability that the agreement tests of a loop with the estimate refuse a true loop whose
+covariances are honest (:meth:`LoopCloser._disagreement`)."""
+
+
+@dataclass
+class PendingLoop:
+    """A verified loop whose position the estimate does not confirm, held for the next
+    keyframes: frame, old frame, its loop pose ``p (3,)``, ``q (4,)`` with covariance
+    ``(6, 6)``, and how many consecutive keyframes agreed so far."""
+
+    frame: int
+    old: int
+    p: Array
+    q: Array
+    covariance: Array
+    count: int
+
 
 _PLACE_REFUSED = ("too few old map features", "too few matches to the map", "PnP failed", "too few PnP inliers")
 """Verification failures that refuse the candidate's place as a whole (its map features)."""
@@ -161,6 +181,7 @@ class LoopCloser:
         self.rejected: list[tuple[int, int, str]] = []  # (frame, candidate, why) verifications that failed
         self._streak: list[tuple[int, int, int]] = []  # (lo, hi, count) places of the last query
         self._loop_tracks: dict[int, NDArray[np.int64]] = {}  # loop frame -> old features fused there
+        self._pending: PendingLoop | None = None  # a loop awaiting confirmation
 
     # -- per frame ------------------------------------------------------------------
     def process(self, k: int) -> LoopClosure | None:
@@ -328,6 +349,10 @@ class LoopCloser:
             self.rejected.append((k, j, chk.reason))
             return None
         p_f, q_f = filt.pose(k)
+        why = self._disagreement(j, k, chk.p, chk.q, X[chk.features])
+        if why:
+            self.rejected.append((k, j, why))
+            return None
         dp = float(np.linalg.norm(chk.p - p_f))
         dq = float(np.degrees(np.linalg.norm(quat_log(quat_multiply(quat_conjugate(q_f), chk.q)))))
         obs = FeatureObservations.make(np.full(len(chk.keypoints), k), fids[chk.features], fk.uv[chk.keypoints],
@@ -360,6 +385,99 @@ class LoopCloser:
                          chk.five_point_required, len(fused), dp, dq)
         self.closures.append(lc)
         return lc
+
+    def _disagreement(self, j: int, k: int, p_m: Array, q_m: Array, X: Array) -> str:
+        """Why a verified loop of frame *k* to the old frame *j* must not be fused yet ("" when
+        it may): its pose ``(p_m, q_m)``, localised on the old map features ``X``, against
+        what the estimate knows (:mod:`~eifslam.estimation.agreement`).
+
+        1. **Rotation.** The rotation the loop implies must agree with the estimate's, at
+           the false-alarm rate :data:`AGREEMENT_FALSE_ALARM` of chi-square with 3 degrees of
+           freedom, against the rotation drift the relative poses fused between the two
+           frames allow (their ``ZR`` covariances summed in the world frame: dead reckoning,
+           an upper bound of what the map-aided estimate can have drifted) plus the loop's
+           own. A perceptual alias (the same picture elsewhere) is seen from another
+           direction and fails here however consistently it is recognised.
+        2. **Position.** A loop whose pose also agrees with the estimate's joint covariance
+           of the two poses (6 degrees of freedom, same rate) is fused. One that does not
+           (a long loop: the position drift of a monocular estimate, scale drift included,
+           outgrows its linearised covariance) is held until the next
+           ``loop_consistency - 1`` keyframes verify the same place with loop poses that
+           agree with one another (the same test between consecutive loop frames, whose
+           relative pose the estimate knows well), as ORB-SLAM asks a group of consistent
+           keyframes before it corrects a loop.
+        """
+        from ..estimation.agreement import chi2_quantile, pose_agreement, rotation_agreement
+        from ..estimation.localisation import map_pose_covariance
+
+        filt, sysc = self.filter, self.config.system
+        C_m = map_pose_covariance(self.camera, p_m, q_m, X, self.config.zm_sigma_px)
+        if C_m is None:
+            return "the loop's pose is not determined"
+        (p_j, q_j), (p_k, q_k) = filt.pose(j), filt.pose(k)
+        chain = self._rotation_drift(j, k)
+        nis_rot = rotation_agreement(q_k, q_m, chain, C_m[3:, 3:])
+        if not nis_rot <= chi2_quantile(3, AGREEMENT_FALSE_ALARM):
+            self._pending = None
+            return f"rotation disagrees with the estimate (NIS {nis_rot:.3g}, 3 DOF)"
+        nis = pose_agreement(p_j, q_j, p_k, q_k, self._joint_tangent_covariance(j, k), p_m, q_m, C_m)[0]
+        if nis <= chi2_quantile(6, AGREEMENT_FALSE_ALARM):
+            self._pending = None
+            return ""
+        pend = self._pending
+        if pend is not None and pend.frame < k and abs(pend.old - j) <= self._place_span(pend.old):
+            # the loop pose of frame k carried to frame pend.frame by the loop poses' relative
+            # motion, against the estimate's relative motion of the two frames
+            R_a = quat_to_rotmat(pend.q)
+            p_rel, q_rel = R_a.T @ (p_m - pend.p), quat_multiply(quat_conjugate(pend.q), q_m)
+            pa, qa = filt.pose(pend.frame)
+            p_c = pa + quat_to_rotmat(qa) @ p_rel
+            q_c = quat_multiply(qa, q_rel)
+            nis_pair = pose_agreement(pa, qa, p_k, q_k, self._joint_tangent_covariance(pend.frame, k),
+                                      p_c, q_c, C_m + pend.covariance)[0]
+            if nis_pair <= chi2_quantile(6, AGREEMENT_FALSE_ALARM):
+                pend = PendingLoop(k, j, p_m, q_m, C_m, pend.count + 1)
+            else:
+                pend = PendingLoop(k, j, p_m, q_m, C_m, 1)
+        else:
+            pend = PendingLoop(k, j, p_m, q_m, C_m, 1)
+        if pend.count >= max(int(sysc.loop_consistency), 1):
+            self._pending = None
+            return ""
+        self._pending = pend
+        return f"position disagrees with the estimate (NIS {nis:.3g}, 6 DOF): held for confirmation ({pend.count})"
+
+    def _place_span(self, j: int) -> int:
+        """How far apart two old frames may be and still be one place: the frames that share
+        map tracks with frame *j* span it."""
+        near = self._place_parts(j)[0]
+        return max((abs(f - j) for f in near), default=0)
+
+    def _joint_tangent_covariance(self, a: int, b: int) -> Array:
+        """(12, 12) joint covariance of ``[dp, dtheta]`` of poses *a* and *b* from the
+        estimate (a solve of the whole information: a loop is verified rarely)."""
+        from ..estimation.state import pose_tangent_jacobian
+
+        filt = self.filter
+        cols = filt.layout.pose_columns([a, b])
+        C = filt.covariance(cols.ravel())
+        T = np.zeros((12, 14))
+        T[:6, :7] = pose_tangent_jacobian(filt.x[cols[0][3:]])
+        T[6:, 7:] = pose_tangent_jacobian(filt.x[cols[1][3:]])
+        return T @ C @ T.T
+
+    def _rotation_drift(self, j: int, k: int) -> Array:
+        """(3, 3) covariance, in frame *k*'s camera frame, of the rotation drift the relative
+        poses fused between frames *j* and *k* allow: their ``ZR`` covariances (each in its
+        reference camera's frame) rotated into the world and summed."""
+        filt = self.filter
+        C = np.zeros((3, 3))
+        for rp in filt.store.relative:
+            if j < rp.j <= k and filt.layout.has_pose(rp.i):
+                R = quat_to_rotmat(filt.pose(rp.i)[1]) @ quat_to_rotmat(rp.q_ij)  # frame rp.j to world
+                C += R @ rp.cov[:3, :3] @ R.T
+        R_k = quat_to_rotmat(filt.pose(k)[1])
+        return R_k.T @ C @ R_k
 
     def _predicted(self, obs: FeatureObservations) -> bool:
         """Whether the filter's estimate already predicts the loop's ``Zm`` (the median

@@ -204,13 +204,15 @@ class Mapper:
         timings.update(init=1e3 * (t1 - t0), fuse=1e3 * (t2 - t1), recover=1e3 * (t3 - t2))
 
     def recover(self) -> None:
-        """Recover the state after fusing: the active window, then every state outside it.
+        """Recover the state after fusing: the active window, then the states marginalised
+        in the last :data:`RECENT_STEPS` keyframes (their back substitution).
 
         The states outside the recovery window keep the values they had when they left it
-        unless back-substituted, and the front end reads them (localisation on the map,
-        re-observation, triangulation from old poses): O(n), a few milliseconds a
-        keyframe; without it those reads see stale states and the trajectory, filtered
-        and smoothed, is less accurate on long sequences."""
+        unless back-substituted, and tracking reads them (localisation on the map,
+        re-observation, triangulation from the poses that first saw a track), so the
+        recent ones are made exact each keyframe. Back-substituting every state would cost
+        ``O(n)`` a keyframe; the older states are brought up to date where the whole
+        estimate is read (:meth:`InformationFilter.complete_estimate`)."""
         self.filter.recover_active()
         self.filter.recent_estimate(RECENT_STEPS)
 
