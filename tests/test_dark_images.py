@@ -6,7 +6,6 @@ used to lose most keypoints; a sparse ring of views of a dark object placed 1 vi
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -16,7 +15,6 @@ from eifslam.frontend import FrontEndConfig
 from eifslam.frontend.features import detect_features, make_detector, normalise_gain
 from eifslam.geometry.camera import PinholeCamera
 
-DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 CAM = PinholeCamera(500.0, 500.0, 319.5, 239.5, 640, 480)
 
 
@@ -76,8 +74,8 @@ def test_a_dark_exposure_keeps_the_keypoints_of_the_bright_one(image, detector, 
     assert 0.85 * n_bright <= n_dark_on <= 1.15 * n_bright
 
 
-@pytest.mark.skipif(not (DATASETS / "middlebury-templering").is_dir(), reason="../shared/datasets absent")
-def test_sparse_ring_of_a_dark_object_is_placed(tmp_path):
+@pytest.mark.data
+def test_sparse_ring_of_a_dark_object_is_placed(tmp_path, shared_dataset):
     """Every third view of middlebury-templering (about 23 degrees apart), darkened to 30%:
     8 of 11 views are placed with the gain normalised (the same as the bright images),
     1 without (no map features)."""
@@ -86,7 +84,7 @@ def test_sparse_ring_of_a_dark_object_is_placed(tmp_path):
     from eifslam.system.config import SlamConfig
     from eifslam.system.runner import run_sequence
 
-    src = DATASETS / "middlebury-templering"
+    src = shared_dataset("middlebury-templering")
     dst = tmp_path / "dark-ring"
     (dst / "images").mkdir(parents=True)
     (dst / "camera.yaml").write_text((src / "camera.yaml").read_text())

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -14,7 +13,6 @@ from eifslam.frontend.wide import WideBaselineMatcher, root_normalise, snap_to_k
 from eifslam.geometry.camera import PinholeCamera
 from eifslam.system.config import SlamConfig
 
-DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 
 
 def test_root_normalise_gives_unit_vectors_and_leaves_binary_alone():
@@ -91,14 +89,13 @@ def test_wide_baseline_config_is_checked():
             SlamConfig.from_dict({"system": bad})
 
 
-@pytest.mark.skipif(not (DATASETS / "middlebury-templering").is_dir(),
-                    reason="../shared/datasets/middlebury-templering is absent")
-def test_templering_views_after_the_gap_are_placed():
+@pytest.mark.data
+def test_templering_views_after_the_gap_are_placed(shared_dataset):
     from eifslam.evaluation.metrics import evaluate
     from eifslam.io import Trajectory, open_source
     from eifslam.system.runner import run_sequence
 
-    seq = open_source(DATASETS / "middlebury-templering")
+    seq = open_source(shared_dataset("middlebury-templering"))
     run = run_sequence(seq, SlamConfig.from_dict({"system": {"wide_baseline": True}}), quiet=True)
     placed = [r.frame_id for r in run.slam.results if r.position is not None]
     assert set(range(24, 31)) <= set(placed)  # the 7 views after the 46-degree gap
