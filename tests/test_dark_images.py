@@ -1,7 +1,7 @@
 """Dark images: the gain normalisation before detection (frontend.normalise_gain).
 
-Detection thresholds are absolute intensities, so a darker exposure of the same scene
-used to lose most keypoints; a sparse ring of views of a dark object placed 1 view.
+Detection thresholds are absolute intensities, so without it a darker exposure of the same
+scene loses most keypoints; a sparse ring of views of a dark object places 1 view.
 """
 
 from __future__ import annotations

@@ -14,8 +14,8 @@ from eifslam.frontend import FrontEnd, FrontEndConfig, Reason
 from eifslam.geometry.rotations import quat_to_rotmat, quat_xyzw_to_wxyz, rotvec_exp
 
 CAM = PinholeCamera(500.0, 500.0, 319.5, 239.5, 640, 480)
-# the front end these tests were measured with (the defaults before issue 11 made the
-# system's the defaults): 1000 features, 2 SIFT layers, previous frame only.
+# a small front end, quick on these synthetic images: 1000 features, 2 SIFT layers,
+# previous frame only.
 SMALL = FrontEndConfig(max_features=1000, sift_octave_layers=2, match_window=1, map_fraction=0.3)
 
 

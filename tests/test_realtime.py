@@ -1,4 +1,4 @@
-"""The pipelined front end (issue 12, part 2): ``FrontEnd.detect`` / ``add_features``, the
+"""The pipelined front end: ``FrontEnd.detect`` / ``add_features``, the
 runner's prefetching worker thread, and the cheaper-detection settings.
 
 The pipelined run must give the sequential run's results exactly (detection depends on
