@@ -102,4 +102,6 @@ def test_templering_views_after_the_gap_are_placed(shared_dataset):
     t, P, Q = run.slam.trajectory()
     ev = evaluate(Trajectory(t, P, Q), seq.ground_truth())
     assert ev.tracked_fraction > 0.95
-    assert ev.ate_rmse < 0.008  # 0.0048 measured; 0.0188 when the five-point pose was fused
+    # within about half a percent of the views' extent (1.46 units); COLMAP registers only
+    # the 24 views before the gap, at 0.0012 (EVALUATION.md)
+    assert 1e-5 < ev.ate_rmse < 0.008
