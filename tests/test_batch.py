@@ -1,4 +1,4 @@
-"""``eifslam batch`` (issue 17): the task list, the task function, skipping complete
+"""``eifslam batch``: the task list, the task function, skipping complete
 folders, failures as rows, the missing-Dask hint, an unreachable scheduler, two runs
 through a real local Dask cluster of processes (one of them with a worker killed by
 SIGKILL) and one on an existing (threaded) cluster through ``--scheduler``.

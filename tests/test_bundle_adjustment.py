@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,7 +14,6 @@ from eifslam.baselines.bundle_adjustment import (BAConfig, Observations, _Proble
 from eifslam.errors import ConfigError, EstimatorError
 from eifslam.geometry.rotations import quat_exp, quat_multiply
 
-DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 
 
 def _scene(rng, noise: bool, sigma_px: float = 0.5):
@@ -100,14 +98,14 @@ def test_core_modules_do_not_import_cv2_or_matplotlib():
     assert out.stdout.strip() == "False"
 
 
-@pytest.mark.skipif(not (DATASETS / "kitti-seq1").is_dir(), reason="../shared/datasets/kitti-seq1 is absent")
-def test_kitti_first_frames_ba_against_ground_truth():
+@pytest.mark.data
+def test_kitti_first_frames_ba_against_ground_truth(shared_dataset):
     from eifslam.system.config import SlamConfig
     from eifslam.evaluation.metrics import evaluate
     from eifslam.io import Trajectory, open_source
     from eifslam.system.slam import Slam
 
-    seq = open_source(DATASETS / "kitti-seq1")
+    seq = open_source(shared_dataset("kitti-seq1"))
     slam = Slam(seq.camera, SlamConfig().replace(system={"mode": "ba"}))
     for k in range(10):
         slam.track(seq.load(k), seq.frames[k].timestamp)

@@ -1,5 +1,5 @@
 """Configuration files, `eifslam config`, --seed, -q/-v, the overwrite guard and the run's
-provenance in report.json (issue 15)."""
+provenance in report.json."""
 
 from __future__ import annotations
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,7 +14,6 @@ from eifslam.evaluation.metrics import EvaluationError, Sim3, align_sim3, evalua
 from eifslam.geometry.rotations import quat_normalize, rotmat_to_quat, rotvec_exp
 from eifslam.io.trajectory import Trajectory, read_tum, write_tum
 
-DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 
 
 def _gt(rng: np.random.Generator, n: int = 200) -> Trajectory:
@@ -129,12 +127,11 @@ def test_to_dict_is_json_ready():
     assert Sim3(1.0, np.eye(3), np.zeros(3)).to_dict()["scale"] == 1.0
 
 
-def test_matches_evo_on_shared_ground_truth():
+@pytest.mark.data
+def test_matches_evo_on_shared_ground_truth(shared_dataset):
     from evo.core import metrics, sync
 
-    path = DATASETS / "7scenes-redkitchen-a" / "groundtruth.tum"
-    if not path.is_file():
-        pytest.skip(f"shared data set not found at {path.parent}")
+    path = shared_dataset("7scenes-redkitchen-a/groundtruth.tum")
     gt = read_tum(path)
     rng = np.random.default_rng(7)
     R = Rotation.random(random_state=8).as_matrix()

@@ -111,7 +111,7 @@ def nees_runs():
     with 50 runs of 10 frames (chi-square interval 5.08 - 7.00; `benchmarks/consistency.py
     --runs 50 --frames 10 --every 10 --set ...`): here 6.22 (filter) and 5.84 (smooth)
     (5.9 and 5.8 with first-estimates Jacobians). Not at
-    the system's defaults, where the run is not consistent (issue 14; docs/estimator.md,
+    the system's defaults, where the run is not consistent (docs/estimator.md,
     Consistency): 9.55 (filter) and 7.44 (smooth) at the defaults (2 degrees, Zm gate 9.21
     against R alone, ZR/ZT gate 50, no first-estimates Jacobians); 10.1 and 6.18 with
     `filter.gate_feature_uncertainty`. The gates test innovations against the

@@ -1,4 +1,4 @@
-"""A corpus of hostile inputs (issue 16), generated in tmp_path: every case ends with exit
+"""A corpus of hostile inputs, generated in tmp_path: every case ends with exit
 0, or exit 1 and one line ``eifslam: error: ...`` naming the file or option; never a
 traceback, a hang or lost estimates. Session files are covered by the session tests."""
 

@@ -1,8 +1,7 @@
-"""Loaders on the shared evaluation data sets (skipped when they are absent)."""
+"""Loaders on the shared evaluation data sets (data tests: tests/conftest.py)."""
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +12,6 @@ from eifslam.io.kitti import read_kitti_poses
 from eifslam.io.strecha import open_strecha
 from eifslam.io.trajectory import read_tum
 
-DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 
 EXPECTED = {
     # name: (frames, width, height, fx, image channels)
@@ -24,16 +22,10 @@ EXPECTED = {
 }
 
 
-def _dataset(name: str) -> Path:
-    path = DATASETS / name
-    if not path.is_dir():
-        pytest.skip(f"shared data set {name} not found at {path}")
-    return path
-
-
+@pytest.mark.data
 @pytest.mark.parametrize("name", sorted(EXPECTED))
-def test_folder_loader_on_shared(name):
-    root = _dataset(name)
+def test_folder_loader_on_shared(name, shared_dataset):
+    root = shared_dataset(name)
     n, w, h, fx, channels = EXPECTED[name]
     seq = open_source(root)
     assert seq.kind == "folder"
@@ -52,8 +44,9 @@ def test_folder_loader_on_shared(name):
     np.testing.assert_allclose(gt.positions, ref.positions)
 
 
-def test_kitti_original_files_agree():
-    root = _dataset("kitti-seq1")
+@pytest.mark.data
+def test_kitti_original_files_agree(shared_dataset):
+    root = shared_dataset("kitti-seq1")
     T = read_kitti_poses(root / "poses.txt")
     ref = read_tum(root / "groundtruth.tum")
     np.testing.assert_allclose(T[:, :3, 3], ref.positions, atol=1e-6)
@@ -62,8 +55,9 @@ def test_kitti_original_files_agree():
     assert cam == load_camera(root / "camera.yaml")
 
 
-def test_strecha_original_files_agree():
-    root = _dataset("strecha-fountain-p11")
+@pytest.mark.data
+def test_strecha_original_files_agree(shared_dataset):
+    root = shared_dataset("strecha-fountain-p11")
     seq = open_strecha(root)  # .camera files in gt_cameras/
     ref = read_tum(root / "groundtruth.tum")
     gt = seq.ground_truth()

@@ -84,9 +84,3 @@ def test_layer_imports_only_from_below(layer):
             if target not in ALLOWED[layer]:
                 bad.append(f"{path.relative_to(PACKAGE)}:{line} imports {mod}")
     assert not bad, f"layer {layer!r} reaches above itself:\n" + "\n".join(bad)
-
-
-def test_no_module_over_500_lines():
-    long = [f"{p.relative_to(PACKAGE)} ({n})" for p in _modules()
-            if (n := len(p.read_text().splitlines())) > 500]
-    assert not long, f"modules over 500 lines: {long}"

@@ -1,4 +1,4 @@
-"""Loop closure (issue 13 item 2): the bag-of-words index finds a revisited frame, the
+"""Loop closure: the bag-of-words index finds a revisited frame, the
 geometric verification accepts a true place and refuses wrong associations, the built-in
 scene's second lap closes the loop with the right frames (and the first lap reports
 none), ``report.json`` lists the loops and ``--no-loop-closure`` turns it off."""

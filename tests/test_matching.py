@@ -1,4 +1,4 @@
-"""Descriptor matching (issue 12): a frame's index built once and reused gives the matches
+"""Descriptor matching: a frame's index built once and reused gives the matches
 the plain matcher gives; rows that are not free are never matched; binary descriptors are
 searched exactly; a seeded index is the same whenever it is built."""
 

@@ -1,4 +1,4 @@
-"""The pixel noise estimated from the residuals (robust smoothing's gate, issue 14).
+"""The pixel noise estimated from the residuals (robust smoothing's gate).
 
 Known answer: the synthetic front end draws ``Zm`` with a chosen pixel noise while the
 system is told another; :func:`residual_noise_scale` must find the ratio, and robust

@@ -1,4 +1,4 @@
-"""Typed options and state keys of the estimation layer accept the plain strings (issue 11)."""
+"""Typed options and state keys of the estimation layer accept the plain strings."""
 
 from __future__ import annotations
 

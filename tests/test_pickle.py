@@ -1,4 +1,4 @@
-"""Filters pickle without outsiders blanking their fields (issue 11)."""
+"""Filters pickle without outsiders blanking their fields."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The README's Python example runs as written (issue 15)."""
+"""The README's Python example runs as written."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The pipelined front end (issue 12, part 2): ``FrontEnd.detect`` / ``add_features``, the
+"""The pipelined front end: ``FrontEnd.detect`` / ``add_features``, the
 runner's prefetching worker thread, and the cheaper-detection settings.
 
 The pipelined run must give the sequential run's results exactly (detection depends on
@@ -8,7 +8,6 @@ the image only; everything else runs in frame order), so the comparisons here ar
 from __future__ import annotations
 
 import threading
-from pathlib import Path
 from types import SimpleNamespace
 
 import cv2
@@ -23,7 +22,6 @@ from eifslam.geometry.camera import PinholeCamera
 from eifslam.system.config import SlamConfig
 from eifslam.system.runner import FramePrefetcher, run_sequence
 
-DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 
 
 class _Frames:
@@ -174,12 +172,11 @@ def test_pipelined_run_is_the_sequential_run_on_the_rendered_scene(scene_frames)
     _same_runs(seq_run, run_sequence(scene_frames, cfg, quiet=True))
 
 
-@pytest.mark.skipif(not (DATASETS / "kitti-seq1").is_dir(),
-                    reason="../shared/datasets/kitti-seq1 is absent (the shared data sets are not checked out)")
-def test_pipelined_run_is_the_sequential_run_on_kitti():
+@pytest.mark.data
+def test_pipelined_run_is_the_sequential_run_on_kitti(shared_dataset):
     from eifslam.io import open_source
 
-    seq = open_source(DATASETS / "kitti-seq1")
+    seq = open_source(shared_dataset("kitti-seq1"))
     cfg = SlamConfig()
     a = run_sequence(seq, cfg, max_frames=6, quiet=True, prefetch=0)
     b = run_sequence(seq, cfg, max_frames=6, quiet=True, prefetch=3)

@@ -11,7 +11,6 @@ ATE of 0.82 m (COLMAP 0.17 m).
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,24 +20,22 @@ from eifslam.io.trajectory import read_tum
 from eifslam.system.config import SlamConfig
 from eifslam.system.slam import Slam
 
-DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
-CASTLE = DATASETS / "strecha-castle-p30"
 CHI2_3_999 = 16.27  # 99.9% quantile of chi-square with 3 degrees of freedom
 
 
-@pytest.mark.skipif(not CASTLE.is_dir(),
-                    reason="../shared/datasets/strecha-castle-p30 is absent (the shared data sets are not checked out)")
+@pytest.mark.data
 @pytest.mark.parametrize("i, j, contrast, seed", [(0, 1, 0.04, 0), (1, 2, 0.04, 0), (0, 2, 0.04, 0), (0, 1, 0.02, 2),
                                                   (0, 1, 0.01, 0)])
-def test_wide_baseline_relative_rotation_is_consistent_with_its_covariance(i, j, contrast, seed):
+def test_wide_baseline_relative_rotation_is_consistent_with_its_covariance(i, j, contrast, seed, shared_dataset):
     # SIFT's contrast threshold changes the keypoints: at 0.01 (and 0.02 with seed 2) the
     # first pair's Ωp correspondences made USAC stop at the facade's twin pose (14 deg off,
     # 67 of 73 inliers against the true pose's 73), and the Gauss-Newton refinement of the
     # homography's pose stayed at its start
     from eifslam.io import open_source
 
-    seq = open_source(CASTLE)
-    gt = read_tum(CASTLE / "groundtruth.tum")
+    castle = shared_dataset("strecha-castle-p30")
+    seq = open_source(castle)
+    gt = read_tum(castle / "groundtruth.tum")
     slam = Slam(seq.camera, SlamConfig().replace(frontend={"sift_contrast_threshold": contrast, "seed": seed}))
     fe = slam.frontend
     for k in sorted({i, j}):
@@ -54,13 +51,9 @@ def test_wide_baseline_relative_rotation_is_consistent_with_its_covariance(i, j,
     assert np.degrees(np.linalg.norm(dtheta)) < 2.0
 
 
-KITTI = DATASETS / "kitti-seq1"
-
-
-@pytest.mark.skipif(not KITTI.is_dir(),
-                    reason="../shared/datasets/kitti-seq1 is absent (the shared data sets are not checked out)")
+@pytest.mark.data
 @pytest.mark.parametrize("i, j", [(0, 1), (10, 11)])
-def test_a_narrow_forward_pair_keeps_its_direction(i, j):
+def test_a_narrow_forward_pair_keeps_its_direction(i, j, shared_dataset):
     # with ORB, kitti-seq1's narrow forward pairs (0.7-0.8 deg of parallax) have
     # homography decompositions 84 deg off the true direction with more inliers at 1 px than
     # the essential matrix's pose (the pair's near-static points fit them); trying them on
@@ -68,8 +61,9 @@ def test_a_narrow_forward_pair_keeps_its_direction(i, j):
     # them (relative_pose._PLANE_PARALLAX_DEG).
     from eifslam.io import open_source
 
-    seq = open_source(KITTI)
-    gt = read_tum(KITTI / "groundtruth.tum")
+    kitti = shared_dataset("kitti-seq1")
+    seq = open_source(kitti)
+    gt = read_tum(kitti / "groundtruth.tum")
     fe = Slam(seq.camera, SlamConfig().replace(frontend={"detector": "orb"})).frontend
     for k in (i, j):
         fe.add_frame(seq.load(k), k)

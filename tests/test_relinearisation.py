@@ -134,9 +134,9 @@ def test_relinearisation_brings_the_estimate_closer_to_the_optimum(runs):
         opt = _gauss_newton(f)
         assert c >= opt * (1 - 1e-9)
         excess.append(c / opt - 1.0)
-    # measured: 0.45x on the branch that added it, 0.60x once new features are refined on
-    # every view before fusion (their first linearisation is better, less is left to gain)
-    assert excess[0] < 0.75 * excess[1]
+    # online relinearisation removes a good part of the excess cost (about 0.6x is left;
+    # new features are refined on every view before fusion, so less is left to gain)
+    assert 0 < excess[0] < 0.75 * excess[1]
 
 
 def test_bad_relinearisation_settings_are_rejected():

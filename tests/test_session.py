@@ -1,4 +1,4 @@
-"""Sessions (issue 15): a saved and loaded system continues as the uninterrupted run, and a
+"""Sessions: a saved and loaded system continues as the uninterrupted run, and a
 file that is not an eifslam session (a pickle, random bytes, another zip, a crafted or
 truncated npz) is refused in one line naming it, without running anything in it."""
 

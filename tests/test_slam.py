@@ -14,7 +14,6 @@ from eifslam.system.config import SlamConfig
 from eifslam.errors import ConfigError, ImageError
 from eifslam.system.slam import Slam, TrackingState
 
-DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 
 
 def test_config_rejects_unknown_keys_and_bad_values():
@@ -129,12 +128,12 @@ def test_session_saves_after_the_recovery_window_was_rebuilt(scene_run, tmp_path
     assert back.track(render_frame(scene, 13), float(scene.timestamps[13])).state is TrackingState.TRACKING
 
 
-@pytest.mark.skipif(not (DATASETS / "kitti-seq1").is_dir(), reason="../shared/datasets/kitti-seq1 is absent")
-def test_kitti_first_frames_against_ground_truth():
+@pytest.mark.data
+def test_kitti_first_frames_against_ground_truth(shared_dataset):
     from eifslam.evaluation.metrics import evaluate
     from eifslam.io import Trajectory, open_source
 
-    seq = open_source(DATASETS / "kitti-seq1")
+    seq = open_source(shared_dataset("kitti-seq1"))
     slam = Slam(seq.camera)
     n = 12
     res = [slam.track(seq.load(k), seq.frames[k].timestamp) for k in range(n)]

@@ -4,7 +4,6 @@ images: the slow start of 7scenes-redkitchen-a, where the first map holds one fe
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,16 +14,14 @@ from eifslam.system.config import SlamConfig
 from eifslam.system.runner import run_sequence
 from eifslam.system.slam import TrackingState
 
-DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
-SEVEN = DATASETS / "7scenes-redkitchen-a"
 
 
-@pytest.mark.skipif(not SEVEN.is_dir(),
-                    reason="../shared/datasets/7scenes-redkitchen-a is absent (the shared data sets are not checked out)")
-def test_frames_that_waited_are_placed_during_the_run_once_the_map_has_grown():
+@pytest.mark.data
+def test_frames_that_waited_are_placed_during_the_run_once_the_map_has_grown(shared_dataset):
     from eifslam.io import open_source
 
-    seq = open_source(SEVEN)
+    seven = shared_dataset("7scenes-redkitchen-a")
+    seq = open_source(seven)
     cfg = SlamConfig.from_dict({"frontend": {"detector": "orb"}, "system": {"mode": "filter"}})
     n = 40
     run = run_sequence(seq, cfg, max_frames=n, quiet=True, prefetch=0)
@@ -39,7 +36,7 @@ def test_frames_that_waited_are_placed_during_the_run_once_the_map_has_grown():
                for r in waited)
     # placed where they are: against the ground truth (scoring only), after a Sim(3)
     # alignment of the whole run, the frames that waited are as accurate as the others
-    gt = read_tum(SEVEN / "groundtruth.tum")
+    gt = read_tum(seven / "groundtruth.tum")
     t = np.array([r.timestamp for r in res])
     P = np.array([r.position for r in res])
     truth = np.array([gt.positions[np.argmin(np.abs(gt.timestamps - ti))] for ti in t])

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -14,7 +13,6 @@ from eifslam.frontend.wide import WideBaselineMatcher, root_normalise, snap_to_k
 from eifslam.geometry.camera import PinholeCamera
 from eifslam.system.config import SlamConfig
 
-DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 
 
 def test_root_normalise_gives_unit_vectors_and_leaves_binary_alone():
@@ -91,18 +89,19 @@ def test_wide_baseline_config_is_checked():
             SlamConfig.from_dict({"system": bad})
 
 
-@pytest.mark.skipif(not (DATASETS / "middlebury-templering").is_dir(),
-                    reason="../shared/datasets/middlebury-templering is absent")
-def test_templering_views_after_the_gap_are_placed():
+@pytest.mark.data
+def test_templering_views_after_the_gap_are_placed(shared_dataset):
     from eifslam.evaluation.metrics import evaluate
     from eifslam.io import Trajectory, open_source
     from eifslam.system.runner import run_sequence
 
-    seq = open_source(DATASETS / "middlebury-templering")
+    seq = open_source(shared_dataset("middlebury-templering"))
     run = run_sequence(seq, SlamConfig.from_dict({"system": {"wide_baseline": True}}), quiet=True)
     placed = [r.frame_id for r in run.slam.results if r.position is not None]
     assert set(range(24, 31)) <= set(placed)  # the 7 views after the 46-degree gap
     t, P, Q = run.slam.trajectory()
     ev = evaluate(Trajectory(t, P, Q), seq.ground_truth())
     assert ev.tracked_fraction > 0.95
-    assert ev.ate_rmse < 0.008  # 0.0048 measured; 0.0188 when the five-point pose was fused
+    # within about half a percent of the views' extent (1.46 units); COLMAP registers only
+    # the 24 views before the gap, at 0.0012 (EVALUATION.md)
+    assert 1e-5 < ev.ate_rmse < 0.008

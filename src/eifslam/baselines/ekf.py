@@ -26,6 +26,8 @@ The EKF shares no code path with the EIF by inheritance: both satisfy
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
@@ -34,9 +36,10 @@ from scipy.linalg import cho_factor, cho_solve
 from ..errors import EstimatorError
 from ..estimation import factors
 from ..estimation.factors import Linearised
+from ..estimation.filter import InformationFilter
 from ..estimation.measurements import FeatureObservations, MeasurementStore, PriorStore, RelativePose
 from ..estimation.options import FilterConfig
-from ..estimation.state import StateLayout, pose_tangent_covariance, read_features, read_pose, read_poses
+from ..estimation.state import StateKind, StateLayout, pose_tangent_covariance, read_features, read_pose, read_poses
 from ..geometry.camera import PinholeCamera
 from ..geometry.rotations import quat_normalize
 
@@ -121,6 +124,7 @@ class DenseEKF:
         off = self.layout.add_pose(frame_id)
         self._grow()
         self._x[off : off + 3], self._x[off + 3 : off + 7] = p, q
+        self.priors.weak[(StateKind.POSE, int(frame_id))] = np.concatenate([p, q])
         self._buffer(factors.quat_norm(self.layout, self.x, [frame_id], self.config.quat_norm_sigma))
 
     def add_features(self, track_ids, X: Array) -> None:
@@ -132,6 +136,7 @@ class DenseEKF:
             off = self.layout.add_feature(tid)
             self._grow()
             self._x[off : off + 3] = xyz
+            self.priors.weak[(StateKind.FEATURE, int(tid))] = xyz.copy()
 
     def pose(self, frame_id: int) -> tuple[Array, Array]:
         """Estimated ``(p (3,), q_wc (4,) unit)`` of a pose."""
@@ -238,6 +243,53 @@ class DenseEKF:
         """Nothing is marginalised: ``x``."""
         return self.x
 
+    def set_estimate(self, x: Array) -> None:
+        """Replace the mean by ``x`` ``(dim,)`` (e.g. a bundle adjustment's); ``P`` is kept."""
+        x = np.asarray(x, float)
+        if x.shape != (self.dim,):
+            raise EstimatorError(f"set_estimate: expected shape ({self.dim},), got {x.shape}")
+        self._x[: self.dim] = x
+
+    # -- batch steps in information form ------------------------------------------------
+    def information_form(self) -> InformationFilter:
+        """The same problem as an :class:`~eifslam.estimation.filter.InformationFilter` (full
+        recovery) linearised at the current mean: every state, prior and stored measurement.
+
+        Smoothing, loop correction and scale recovery run on it; :meth:`set_from_information_form`
+        takes their result back. The buffered measurements are among the stored ones.
+        """
+        filt = InformationFilter(self.camera, self.config, recovery="full")
+        for key in self.layout.order:
+            if key.kind == StateKind.POSE:
+                filt.add_pose(key.id, *self.pose(key.id))
+            else:
+                filt.add_features([key.id], self.x[self.layout.feature_slice(key.id)][None])
+        filt.set_estimate(self.x)  # the mean as it is (add_pose normalises quaternions)
+        filt.priors = copy.deepcopy(self.priors)
+        filt.store = copy.deepcopy(self.store)
+        filt.relinearise()
+        return filt
+
+    def set_from_information_form(self, filt: InformationFilter) -> None:
+        """Take the estimate, priors and stored measurements of ``filt`` (made by
+        :meth:`information_form` and changed by a batch step); ``P`` becomes the inverse of
+        its information matrix (dense, ``O(n^3)``). Buffered measurements are dropped: the
+        information holds them."""
+        if filt.layout.order != self.layout.order:
+            raise EstimatorError("set_from_information_form: the information form holds other states")
+        self._x[: self.dim] = filt.x
+        self.priors = copy.deepcopy(filt.priors)
+        self.store = copy.deepcopy(filt.store)
+        self._pending = []
+        if self.dim:
+            I = filt.information_matrix().toarray()
+            try:
+                c = cho_factor(0.5 * (I + I.T))
+            except np.linalg.LinAlgError as exc:
+                raise EstimatorError(f"information matrix is not positive definite: {exc}") from exc
+            P = cho_solve(c, np.eye(self.dim))
+            self.P = 0.5 * (P + P.T)
+
     # -- uncertainty --------------------------------------------------------------------
     def covariance(self, idx) -> Array:
         """Marginal covariance of state entries ``idx`` (k,), read from ``P``."""
@@ -252,6 +304,34 @@ class DenseEKF:
     def feature_covariance(self, track_id: int) -> Array:
         """3x3 covariance of a map feature."""
         return self.covariance(self.layout.feature_columns([track_id])[0])
+
+    def propagate(self, frame_ids, track_ids, G: Array) -> Array:
+        """``G P G^T`` for the joint covariance ``P`` of poses and map features, read from the
+        dense ``P``; features not in the state count as exact (as the EIF's).
+
+        Parameters
+        ----------
+        frame_ids : (Np,) int, distinct pose ids.
+        track_ids : (F,) int, distinct feature ids.
+        G : (k, 7 Np + 3 F) float, 7 columns per pose, then 3 per feature, in the order given.
+
+        Returns
+        -------
+        (k, k) float
+        """
+        fr = [int(f) for f in np.asarray(frame_ids, np.int64).reshape(-1)]
+        ids, G = np.asarray(track_ids, np.int64).reshape(-1), np.asarray(G, float)
+        k, n_p = G.shape[0], 7 * len(fr)
+        have = self.layout.has_features(ids) if len(ids) else np.zeros(0, bool)
+        pcols = self.layout.pose_columns(fr).ravel() if fr else np.zeros(0, np.int64)
+        fcols = self.layout.feature_columns(ids[have]).ravel() if have.any() else np.zeros(0, np.int64)
+        Gh = np.concatenate([G[:, :n_p], G[:, n_p:].reshape(k, len(ids), 3)[:, have].reshape(k, -1)], 1)
+        return Gh @ self.covariance(np.concatenate([pcols, fcols])) @ Gh.T
+
+    def feature_propagate(self, track_ids, G: Array) -> Array:
+        """``G P G^T`` for the joint covariance ``P`` of map features (:meth:`propagate`
+        without poses)."""
+        return self.propagate([], track_ids, G)
 
     def feature_covariances(self, track_ids) -> Array:
         """``(N, 3, 3)`` covariances of map features (repeats allowed), read from ``P``;

@@ -6,19 +6,30 @@ Two classes satisfy it: the exactly sparse EIF,
 measurement (:mod:`eifslam.estimation.factors`) and the state layout
 (:class:`~eifslam.estimation.state.StateLayout`), not an implementation:
 :class:`~eifslam.system.slam.Slam` takes either as ``backend``.
+
+The protocol lists every member the system (:mod:`eifslam.system`) and the run's outputs
+(:mod:`eifslam.evaluation.outputs`) use. The batch steps (smoothing, loop correction,
+scale recovery) are least-squares problems over the stored measurements in information
+form: they run on :meth:`Backend.information_form` and the back end takes their result
+with :meth:`Backend.set_from_information_form` (the EIF is its own information form).
+``tests/test_backend_protocol.py`` runs ``Slam`` at the default settings on each.
 """
 
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from ..geometry.camera import PinholeCamera
-from .measurements import FeatureObservations, RelativePose
+from .measurements import FeatureObservations, PriorStore, RelativePose
 from .options import FilterConfig
 from .state import StateLayout
+
+if TYPE_CHECKING:
+    from .filter import InformationFilter
 
 Array = NDArray[np.float64]
 
@@ -35,6 +46,7 @@ class Backend(Protocol):
     camera: PinholeCamera
     config: FilterConfig
     layout: StateLayout
+    priors: PriorStore
 
     @property
     def dim(self) -> int:
@@ -62,6 +74,11 @@ class Backend(Protocol):
         """Scale prior ``|p_b - p_a| = distance`` (state units)."""
         ...
 
+    def linearise_features(self, obs: FeatureObservations, gate: bool = True) -> tuple:
+        """``(ok (N,), idx, J, W, innov, chi2 (N,))`` of ``Zm`` at the current estimate
+        (:func:`eifslam.estimation.factors.features`)."""
+        ...
+
     def fuse_features(self, obs: FeatureObservations, store: bool = True, gate: bool = True) -> FeatureObservations:
         """Fuse a batch of ``Zm``; return the measurements kept."""
         ...
@@ -86,6 +103,22 @@ class Backend(Protocol):
         """Bring every state to the current solution; returns ``x``."""
         ...
 
+    def set_estimate(self, x: Array) -> None:
+        """Replace the estimate by ``x (dim,)`` (e.g. a bundle adjustment's)."""
+        ...
+
+    def information_form(self) -> "InformationFilter":
+        """The problem as an information filter at the current estimate, for the batch
+        steps (:func:`~eifslam.estimation.smoothing.smooth`,
+        :func:`~eifslam.estimation.loop_correction.correct_loop`,
+        :func:`~eifslam.estimation.scale.recover_scale`)."""
+        ...
+
+    def set_from_information_form(self, filt: "InformationFilter") -> None:
+        """Take the estimate (and what else a batch step changed) from ``filt``, made by
+        :meth:`information_form`."""
+        ...
+
     def pose(self, frame_id: int) -> tuple[Array, Array]:
         """``(p (3,), q (4,) unit)`` of a pose."""
         ...
@@ -102,9 +135,27 @@ class Backend(Protocol):
         """6x6 covariance of ``[p, dtheta]`` of a pose (``dtheta`` in rad)."""
         ...
 
+    def feature_covariance(self, track_id: int) -> Array:
+        """3x3 covariance of a map feature."""
+        ...
+
+    def propagate(self, frame_ids, track_ids, G: Array) -> Array | None:
+        """``G P G^T`` for the joint covariance ``P`` of poses ``[p, q]`` (7 columns of
+        ``G`` each) and map features (3 each), in the order given; None when it is not
+        cheap (the EIF's poses outside its window)."""
+        ...
+
+    def feature_propagate(self, track_ids, G: Array) -> Array:
+        """``G P G^T`` for the joint covariance of map features (zero where it is not cheap)."""
+        ...
+
     def feature_covariances(self, track_ids) -> Array:
         """``(N, 3, 3)`` marginal covariances of map features where they are cheap, NaN
         elsewhere (the localisation's cut, :func:`~eifslam.estimation.localisation.localise_pose`)."""
+        ...
+
+    def information_matrix(self) -> sp.csc_matrix:
+        """The information matrix ``(dim, dim)`` (the EKF: ``P^-1``), for the run's outputs."""
         ...
 
 

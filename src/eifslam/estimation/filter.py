@@ -399,6 +399,17 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         if self.incremental is not None:
             self.incremental.on_invalidate()
 
+    def information_form(self) -> "InformationFilter":
+        """The problem in information form, on which smoothing, loop correction and scale
+        recovery run: this filter itself (see :meth:`set_from_information_form`)."""
+        return self
+
+    def set_from_information_form(self, filt: "InformationFilter") -> None:
+        """Take back the result of a batch step run on :meth:`information_form`: nothing
+        to do, the step changed this filter."""
+        if filt is not self:
+            raise EstimatorError("set_from_information_form: expected this filter's own information form")
+
     # -- uncertainty ------------------------------------------------------------------
     def covariance(self, idx) -> Array:
         """Marginal covariance of arbitrary state entries ``idx`` (k,)."""

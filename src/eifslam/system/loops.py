@@ -365,9 +365,11 @@ class LoopCloser:
             # passes, as ORB-SLAM optimises its essential graph after a loop
             from ..estimation.loop_correction import correct_loop, relinearise_all
 
-            correct_loop(filt, j, k, chk.p, chk.q)
-            fused = filt.fuse_features(obs, gate=False)
-            relinearise_all(filt, sysc.loop_smooth_passes)
+            info = filt.information_form()
+            correct_loop(info, j, k, chk.p, chk.q)
+            fused = info.fuse_features(obs, gate=False)
+            relinearise_all(info, sysc.loop_smooth_passes)
+            filt.set_from_information_form(info)
             # x is now the full solution; the incremental window is rebuilt at the next step
         else:
             fused = filt.fuse_features(obs, gate=False)

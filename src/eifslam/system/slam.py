@@ -362,8 +362,10 @@ class Slam:
         sysc = self.config.system
         gates = dict(feature_chi2=self.filter.config.gate_chi2, relative_chi2=sysc.relative_gate_chi2) \
             if sysc.robust_smoothing else {}
-        self.smoothing = smooth(self.filter, max_passes or sysc.smooth_passes,
+        info = self.filter.information_form()
+        self.smoothing = smooth(info, max_passes or sysc.smooth_passes,
                                 estimate_noise=sysc.smoothing_noise_estimate, **gates)
+        self.filter.set_from_information_form(info)
         self.refine_between_keyframes()
         return self.smoothing
 
@@ -429,7 +431,9 @@ class Slam:
     def set_scale(self, a: tuple[str, int], b: tuple[str, int], length: float) -> float:
         """Scale recovery (paper V): make the distance between two states ``length``
         (the frames between keyframes are rescaled with the map)."""
-        s = recover_scale(self.filter, a, b, length)
+        info = self.filter.information_form()
+        s = recover_scale(info, a, b, length)
+        self.filter.set_from_information_form(info)
         self.keyframes.rescale(s)
         for r in self.results:
             if r.position is not None and not r.keyframe:
