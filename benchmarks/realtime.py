@@ -50,7 +50,10 @@ from ._common import (
     short_error, split_list, write_json,
 )
 
-DETECTORS = ("sift", "orb", "akaze", "surf")
+DETECTORS = ("sift", "orb", "akaze")
+
+#: The name of the loop world's rows (``--loop-world``).
+LOOP_WORLD = "loop-world"
 
 #: Stages summarised (median and p95 ms per frame); ``wait``/``load`` is the time the
 #: tracking thread spent getting the frame; ``match_ahead`` the matching made in the
@@ -123,6 +126,48 @@ def flatness(frames: Sequence[Mapping[str, Any]], key: str = "total") -> dict[st
     a = percentile_stats(vals[:m])["median"]
     b = percentile_stats(vals[-m:])["median"]
     return {"first10_ms": a, "last10_ms": b, "last_over_first": (b / a) if a else None}
+
+
+#: Stages of a keyframe's mapping (Algorithm 1 after the pose guess, recovery, loop closing).
+MAPPING_STAGES: tuple[str, ...] = ("init", "fuse", "recover", "loop")
+
+
+def mapping_stats(frames: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Keyframes and the milliseconds of their mapping (:data:`MAPPING_STAGES` summed).
+
+    The mapping runs in the call that tracks the keyframe, so the lag between a keyframe's
+    arrival and its fusion is zero frames.
+
+    Returns
+    -------
+    dict
+        ``keyframes``, ``keyframe_fraction``, ``mapping_ms`` (``median``, ``p95``, ``n``) and
+        ``mapping_lag_frames``.
+    """
+    kf = [f for f in frames if f.get("keyframe") and f.get("state") != "lost"]
+    ms = [sum(f.get("ms", {}).get(s, 0.0) for s in MAPPING_STAGES) for f in kf]
+    return {"keyframes": len(kf), "keyframe_fraction": len(kf) / len(frames) if frames else None,
+            "mapping_ms": percentile_stats(ms), "mapping_lag_frames": 0}
+
+
+def reset_peak_rss() -> bool:
+    """Reset this process's peak resident memory (Linux ``clear_refs``); False where unsupported."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_rss_mb() -> float | None:
+    """Peak resident memory of this process since start or the last :func:`reset_peak_rss`, MB."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return None
 
 
 def camera_rate_hz(timestamps: Sequence[float]) -> float | None:
@@ -207,6 +252,7 @@ def run_one(source: Path, dataset: str, detector: str, out_dir: Path, settings: 
         from eifslam.system.runner import run_sequence
 
         config = SlamConfig().replace(frontend={"detector": detector, **dict(settings)}, system={"mode": "filter"})
+        reset_peak_rss()
         t0, c0 = time.perf_counter(), time.process_time()
         seq = open_source(source)
         run = run_sequence(seq, config, max_frames=max_frames, quiet=True, prefetch=prefetch)
@@ -225,7 +271,10 @@ def run_one(source: Path, dataset: str, detector: str, out_dir: Path, settings: 
                    camera_hz=rate, realtime_factor=(n / seconds) / rate if rate and seconds > 0 else None,
                    prefetch=config.frontend.prefetch if prefetch is None else prefetch,
                    ate_filter=rep.get("ate_rmse"), stages=stage_stats(frames), flatness=flatness(frames),
-                   stopped=run.stopped, evaluation_error=rep.get("evaluation_error"))
+                   stopped=run.stopped, evaluation_error=rep.get("evaluation_error"),
+                   tracking_ms=percentile_stats([f["ms"]["total"] for f in frames
+                                                 if not f.get("keyframe") and "total" in f.get("ms", {})]),
+                   peak_rss_mb=peak_rss_mb(), loops=len(rep.get("loop_closures") or []), **mapping_stats(frames))
         if smooth and gt is not None and run.slam.filter.layout.n_poses >= 2:
             from eifslam.evaluation.metrics import evaluate
             from eifslam.io import Trajectory
@@ -244,9 +293,9 @@ def run_one(source: Path, dataset: str, detector: str, out_dir: Path, settings: 
     return row
 
 
-HEADERS = ("data set", "detector", "frames", "tracked", "s", "fps", "camera Hz", "CPU ms/frame", "ATE filter", "ATE smooth",
-           "detect ms", "match ms", "rel. pose ms", "cov. ms", "init ms", "fuse ms", "recover ms",
-           "total ms", "wait ms", "last/first 10%", "note")
+HEADERS = ("data set", "detector", "frames", "tracked", "keyframes", "loops", "s", "fps", "camera Hz", "CPU ms/frame",
+           "ATE filter", "ATE smooth", "detect ms", "match ms", "tracking ms (non-keyframes)", "mapping ms/keyframe",
+           "recover ms", "total ms", "wait ms", "last/first 10%", "peak MB", "note")
 
 
 def table_row(row: Mapping[str, Any]) -> list[str]:
@@ -257,13 +306,17 @@ def table_row(row: Mapping[str, Any]) -> list[str]:
         v = st.get(s) or (st.get("load") if s == "wait" else None)
         return f"{fmt(v['median'])} / {fmt(v['p95'])}" if v else "–"
 
+    def pair(v: Mapping[str, Any] | None) -> str:
+        return f"{fmt(v['median'])} / {fmt(v['p95'])}" if v and v.get("n") else "–"
+
     name = row.get("dataset", "") + (f" [{row['tag']}]" if row.get("tag") else "")
     return [name, str(row.get("detector")), fmt(row.get("frames")), fmt(row.get("frames_tracked")),
+            fmt(row.get("keyframes")), fmt(row.get("loops")),
             fmt(row.get("seconds")), fmt(row.get("fps")), fmt(row.get("camera_hz")),
             fmt(row.get("cpu_ms_per_frame")), fmt(row.get("ate_filter")),
-            fmt(row.get("ate_smooth")), *(stage(s) for s in ("detect", "match", "relative_pose", "covariance",
-                                                              "init", "fuse", "recover", "total", "wait")),
-            fmt((row.get("flatness") or {}).get("last_over_first")),
+            fmt(row.get("ate_smooth")), stage("detect"), stage("match"), pair(row.get("tracking_ms")),
+            pair(row.get("mapping_ms")), stage("recover"), stage("total"), stage("wait"),
+            fmt((row.get("flatness") or {}).get("last_over_first")), fmt(row.get("peak_rss_mb")),
             short_error(row.get("error")) or short_error(row.get("stopped"))]
 
 
@@ -291,6 +344,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                    help="also smooth after the filter run and report the smoothed ATE (not timed in fps)")
     p.add_argument("--tag", default="", help="suffix of the run folders and label of the rows")
     p.add_argument("--builtin-frames", type=int, default=54, help="images of the built-in scene (default 54)")
+    p.add_argument("--loop-world", type=Path, default=None, metavar="DIR",
+                   help="also run the loop world from DIR (rendered there by 'eifslam render --scene loop' "
+                        "when DIR has no images)")
     args = p.parse_args(argv)
     args.detectors = split_list(args.detectors)
     bad = [d for d in args.detectors if d not in DETECTORS]
@@ -312,6 +368,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     found: list[tuple[str, Path | None]] = [(p.name, p) for p in discover_datasets(args.data)]
     found.append((BUILTIN, None))
+    if args.loop_world is not None:
+        if not (args.loop_world / "images").is_dir():
+            from eifslam.cli.main import main as eifslam_main
+
+            if eifslam_main(["render", "--scene", "loop", "--out", str(args.loop_world)]) != 0:
+                log(f"could not render the loop world into {args.loop_world}")
+                return 2
+        found.append((LOOP_WORLD, args.loop_world))
     only = split_list(args.only)
     selected = [(n, p) for n, p in found if not only or n in only]
     missing = [n for n in only if n not in {n for n, _ in found}]
