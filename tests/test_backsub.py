@@ -70,3 +70,24 @@ def test_a_chunk_is_merged_once_and_again_only_when_its_conditionals_change(monk
     x3 = inc.full_solution(f.x.copy())
     assert n_first < len(built) <= n_first + 1  # the changed chunk alone
     assert rel_err(x3, full_solve(f)) < 1e-8
+
+
+def test_recent_solution_is_exact_for_the_recent_states_and_leaves_the_older_ones():
+    sc, m = scene(40, 7)
+    f = run_slam(sc, m, InformationFilter(sc.camera, recovery="incremental", window=1))
+    inc = f.incremental
+    exact = f.x.copy()
+    inc.full_solution(exact)
+    assert rel_err(exact, full_solve(f)) < 1e-8
+    slots = 10
+    stale = np.full(f.dim, 123.0)  # marks what a recent back substitution must not touch
+    got = inc.recent_solution(stale.copy(), slots)
+    recent = np.zeros(f.dim, bool)
+    for c in inc._conds[-slots:]:  # noqa: SLF001
+        if c is not None:
+            recent[c.idx] = True
+    active = np.zeros(f.dim, bool)
+    active[inc.pidx] = active[inc.fidx] = True
+    assert recent.sum() > 0 and (~(recent | active)).sum() > 0
+    np.testing.assert_allclose(got[recent | active], exact[recent | active], rtol=1e-9, atol=1e-9)
+    assert np.all(got[~(recent | active)] == 123.0)

@@ -61,7 +61,7 @@ def relative_pose_innovation(p_j: Array, q_j: Array, p_k: Array, q_k: Array, p_m
     camera frame, world units; rotation vector in *k*'s camera frame, rad)."""
     R_jT = quat_to_rotmat(q_j).T
     dt = R_jT @ (np.asarray(p_m, float) - np.asarray(p_k, float))
-    dphi = 2.0 * quat_log(quat_multiply(quat_conjugate(np.asarray(q_k, float)), np.asarray(q_m, float)))
+    dphi = quat_log(quat_multiply(quat_conjugate(np.asarray(q_k, float)), np.asarray(q_m, float)))
     return np.concatenate([dt, dphi])
 
 
@@ -100,7 +100,7 @@ def rotation_agreement(q_k: Array, q_m: Array, C_k: Array, C_m: Array) -> float:
     its estimate ``q_k`` (``q_wc``, (4,)): ``phi^T (C_k + C_m)^-1 phi`` with ``phi =
     log(R_k^T R_m)`` (3,), rad, in *k*'s camera frame; ``C_k``, ``C_m`` (3, 3) the
     covariances of the two (same frame). ``inf`` when singular or not finite."""
-    phi = 2.0 * quat_log(quat_multiply(quat_conjugate(np.asarray(q_k, float)), np.asarray(q_m, float)))
+    phi = quat_log(quat_multiply(quat_conjugate(np.asarray(q_k, float)), np.asarray(q_m, float)))
     S = np.asarray(C_k, float) + np.asarray(C_m, float)
     if not (np.all(np.isfinite(S)) and np.all(np.isfinite(phi))):
         return float("inf")

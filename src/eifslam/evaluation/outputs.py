@@ -72,6 +72,14 @@ def loop_rows(slam: Slam, input_index: dict[int, int] | None = None) -> list[dic
     return rows
 
 
+def refused_loop_rows(slam: Slam) -> list[dict[str, Any]]:
+    """``report.json``'s ``loops_refused``: the loops that passed the geometric verification
+    and were not fused because the estimate contradicts them (or awaits their confirmation),
+    one dict each: ``frame``, ``old_frame``, ``reason``."""
+    return [dict(frame=int(k), old_frame=int(j), reason=why) for k, j, why in slam.loops.rejected
+            if "disagrees with the estimate" in why]
+
+
 def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
             extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """The figures of ``report.json``."""
@@ -91,6 +99,7 @@ def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
         stage_ms_median={s: _median([r.timings_ms[s] for r in res if s in r.timings_ms]) for s in stages},
         total_seconds=round(total_s, 3), fps=round(n / total_s, 3) if total_s > 0 else None,
         eifslam_version=__version__, config=slam.config.to_dict(), loop_closures=loop_rows(slam),
+        loops_refused=refused_loop_rows(slam),
     )
     if slam.smoothing is not None:
         sm = slam.smoothing
