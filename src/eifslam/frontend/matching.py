@@ -15,7 +15,7 @@ from .config import BINARY_INDEXES
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["DescriptorIndex", "DescriptorMatcher", "descriptor_distance", "essential_ransac", "homography_ransac"]
+__all__ = ["DescriptorIndex", "DescriptorMatcher", "essential_ransac", "homography_ransac"]
 
 #: FLANN LSH index of binary descriptors (the parameters OpenCV's documentation suggests).
 LSH_PARAMS = {"algorithm": 6, "table_number": 6, "key_size": 12, "multi_probe_level": 1}
@@ -228,18 +228,6 @@ class DescriptorMatcher:
 
 
 _METHODS = {"usac": cv2.USAC_DEFAULT, "magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
-
-
-def descriptor_distance(A: NDArray, B: NDArray) -> Array:
-    """Row-wise descriptor distances ``(N,)`` of ``A`` and ``B`` ``(N, D)``: Euclidean for
-    float descriptors (SIFT), Hamming for binary ``uint8`` ones (ORB, AKAZE), as the
-    matcher measures them."""
-    if A.dtype == np.uint8:
-        x = np.bitwise_xor(A, B)
-        bits = np.bitwise_count(x) if hasattr(np, "bitwise_count") else np.unpackbits(x, axis=1)
-        return bits.sum(axis=1, dtype=np.int64).astype(float)
-    d = np.asarray(A, np.float32) - np.asarray(B, np.float32)
-    return np.sqrt(np.einsum("ij,ij->i", d, d)).astype(float)
 
 
 def essential_ransac(

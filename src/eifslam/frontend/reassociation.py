@@ -6,13 +6,8 @@ joining of tracks a verified loop found.
 
 from __future__ import annotations
 
-from itertools import chain
-
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
-
-from .matching import descriptor_distance
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -29,16 +24,14 @@ class TrackReassociation:
 
     def reobserve(self, frame_id: int, track_ids: IntArray, uv_predicted: Array, radius_px: float,
                   ratio: float | None = None) -> int:
-        """Guided search: find known ``Ωm`` tracks again in a frame where tracking lost them.
+        """Guided matching: find known ``Ωm`` tracks again in a frame where tracking lost them.
 
-        Each track's descriptor (from its last observation) is compared only with the
-        frame's keypoints near where the track is predicted (active search: no matching
-        against the whole frame). The nearest descriptor within ``radius_px`` is taken when
-        it passes the ratio test against the second nearest within ``2 radius_px`` (the
-        neighbourhood that tells a distinctive match from a repeated texture) and started a
-        new ``Ωm`` track in this frame; that track is then merged into the old one (so the
-        map feature gets this measurement and the keypoint's measurements are never used
-        twice). A track with no second descriptor in its neighbourhood is not taken.
+        Each track's descriptor (from its last observation) is matched against all the
+        frame's keypoints (the front end's matcher: FLANN or Hamming); the nearest is
+        taken when it passes the ratio test against the second nearest, lies within
+        ``radius_px`` of where the track is predicted, and started a new ``Ωm`` track in
+        this frame, which is then merged into the old track (so the map feature gets this
+        measurement and the keypoint's measurements are never used twice).
 
         Parameters
         ----------
@@ -70,36 +63,28 @@ class TrackReassociation:
         track_ids, uv_predicted, lf, lk = track_ids[have], uv_predicted[have], lf[have], lk[have]
         if len(track_ids) == 0:
             return 0
+        D = np.stack([self._desc[int(f)][int(k)] for f, k in zip(lf, lk)])
         Dk = self._desc[fid]
-        pairs = cKDTree(fr.feats.uv).query_ball_point(uv_predicted, 2.0 * float(radius_px))
-        n_cand = np.fromiter((len(c) for c in pairs), np.int64, len(pairs))
-        rows = np.flatnonzero(n_cand >= 2)
-        if len(rows) == 0:
-            return 0
-        track_of = np.repeat(rows, n_cand[rows])
-        kp = np.fromiter(chain.from_iterable(pairs[r] for r in rows), np.int64, int(n_cand[rows].sum()))
-        D = np.stack([self._desc[int(f)][int(k)] for f, k in zip(lf[rows], lk[rows])])
-        Dt = D[np.searchsorted(rows, track_of)]
-        dist = descriptor_distance(Dt, Dk[kp])
-        # per track: nearest and second nearest in the neighbourhood (sorted by track, then distance)
-        order = np.lexsort((dist, track_of))
-        track_of, kp, dist = track_of[order], kp[order], dist[order]
-        first = np.flatnonzero(np.r_[True, track_of[1:] != track_of[:-1]])
-        best, d1, d2 = kp[first], dist[first], dist[first + 1]
-        t_idx = track_of[first]
-        near = np.linalg.norm(fr.feats.uv[best] - uv_predicted[t_idx], axis=1) <= radius_px
+        # Lowe's ratio test over the whole frame (the radius only checks where the nearest
+        # descriptor is): nearest and second-nearest keypoint of each track's descriptor
+        index = self._index[fid] if fid in self._index else self._matcher.index(Dk)  # kept from matching
+        nn, dd = index.knn(D.astype(Dk.dtype), 2)
+        two = nn[:, 1] >= 0
+        best = np.where(two, nn[:, 0], 0)
+        d1 = np.where(two, dd[:, 0], np.inf)
+        d2 = np.where(two, dd[:, 1], 0.0)
+        ok = (d1 < ratio * d2) & (np.linalg.norm(fr.feats.uv[best] - uv_predicted, axis=1) <= radius_px)
         kid = self._tracks.resolve(fr.raw_ids)
         fresh = self._tracks.in_map(kid) & (self._tracks.length(kid) == 1)
-        ok = (d1 < ratio * d2) & near & fresh[best]
+        ok &= fresh[best]
         # a keypoint goes to one track only: the closest descriptor wins
         cand = np.flatnonzero(ok)
-        cand = cand[np.argsort(d1[cand], kind="stable")]
-        _, keep = np.unique(best[cand], return_index=True)
+        cand = cand[np.argsort(d1[cand])]
+        _, first = np.unique(best[cand], return_index=True)
         found = 0
-        for i in cand[np.sort(keep)]:
-            t = int(track_ids[t_idx[i]])
-            if self._tracks.merge(t, int(kid[best[i]])):
-                self._last_frame[t], self._last_kp[t] = fid, best[i]
+        for i in cand[np.sort(first)]:
+            if self._tracks.merge(int(track_ids[i]), int(kid[best[i]])):
+                self._last_frame[track_ids[i]], self._last_kp[track_ids[i]] = fid, best[i]
                 found += 1
         return found
 
