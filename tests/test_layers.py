@@ -84,3 +84,69 @@ def test_layer_imports_only_from_below(layer):
             if target not in ALLOWED[layer]:
                 bad.append(f"{path.relative_to(PACKAGE)}:{line} imports {mod}")
     assert not bad, f"layer {layer!r} reaches above itself:\n" + "\n".join(bad)
+
+
+def _runtime_imports(path: Path) -> list[tuple[int, str]]:
+    """:func:`_imports` without those under ``if TYPE_CHECKING:`` (never executed)."""
+    tree = ast.parse(path.read_text(), str(path))
+    skip = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            skip |= {n.lineno for stmt in node.body for n in ast.walk(stmt) if hasattr(n, "lineno")}
+    return [(line, mod) for line, mod in _imports(path) if line not in skip]
+
+
+def _module_name(path: Path) -> str:
+    rel = path.relative_to(PACKAGE.parent).with_suffix("")
+    parts = list(rel.parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def import_cycles() -> list[list[str]]:
+    """Cycles of the graph of eifslam's modules (an edge for every import that runs,
+    imports inside functions included; a package's ``__init__`` counts as its own node),
+    as strongly connected components with more than one module."""
+    mods = {_module_name(p): p for p in _modules()}
+    graph: dict[str, set[str]] = {m: set() for m in mods}
+    for m, p in mods.items():
+        for _, target in _runtime_imports(p):
+            while target and target not in mods:  # `from pkg import name`: the module or the package
+                target = target.rpartition(".")[0]
+            if target and target != m and not m.startswith(target + "."):  # a package's own modules
+                graph[m].add(target)
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:  # Tarjan
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_import_cycles():
+    cycles = import_cycles()
+    assert not cycles, "import cycles (imports inside functions included):\n" + "\n".join(" <-> ".join(c) for c in cycles)

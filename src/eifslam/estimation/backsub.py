@@ -1,4 +1,4 @@
-"""Back-substitution of the incremental window's conditionals (pure NumPy/SciPy).
+"""Conditionals of the incremental window and their back-substitution (pure NumPy/SciPy).
 
 :meth:`~eifslam.estimation.window.ActiveWindow.full_solution` recovers every marginalised
 state from its conditional, ``x_q = A^-1 (b_q - C x_sep)``, newest first. Applied one by
@@ -19,23 +19,78 @@ rounding.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
-
-if TYPE_CHECKING:  # window.py uses this module
-    from .window import Conditional
+from scipy.linalg import cho_solve
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["CHUNK", "BackSubstitution"]
+__all__ = ["CHUNK", "BackSubstitution", "Conditional"]
 
 #: consecutive conditional slots merged into one product
 CHUNK = 64
+
+
+@dataclass
+class Conditional:
+    """``x[idx] = solve(b - C @ x[cidx])``; ``solve`` is 3x3 blocks, a Cholesky or a factor.
+
+    Attributes
+    ----------
+    idx : (m,) state entries eliminated.
+    b : (m,) their information vector at elimination.
+    C : (m, c) their information coupling to the separator ``cidx`` (CSR for features
+        and a rebuild, dense for poses).
+    cidx : (c,) separator: entries that were active when ``idx`` was eliminated.
+    Dinv : (m/3, 3, 3) features: inverses of the 3x3 information blocks ``A``.
+    chol : poses: Cholesky factor of ``A`` (``cho_factor``).
+    factor : rebuild: factorisation of the eliminated part (cannot be undone).
+    A : (m/3, 3, 3) features or (m, m) poses: the eliminated information block, kept so
+        that the elimination can be undone exactly (:meth:`IncrementalRecovery._reactivate`).
+    """
+
+    idx: IntArray
+    b: Array
+    C: Array | sp.csr_matrix
+    cidx: IntArray
+    Dinv: Array | None = None
+    chol: tuple | None = None
+    factor: object | None = None
+    A: Array | None = None
+
+    _affine: tuple | None = field(default=None, repr=False, compare=False)
+
+    def apply(self, x: Array) -> None:
+        """``x[idx] = solve(b - C x[cidx])`` in place; a pose batch as ``k - K x[cidx]``
+        with ``k = A^-1 b``, ``K = A^-1 C`` solved once (a conditional is never changed:
+        undoing one replaces it), one product a back-substitution; a rebuild as
+        ``k - A^-1 (C x[cidx])`` with ``k`` solved once and the second solve reading only
+        the rows ``C`` couples."""
+        if self.chol is not None:
+            if self._affine is None:
+                self._affine = (cho_solve(self.chol, self.b), cho_solve(self.chol, self.C))
+            k, K = self._affine
+            x[self.idx] = k - K @ x[self.cidx] if len(self.cidx) else k
+            return
+        if self.factor is not None and len(self.cidx):
+            # a rebuild: x = A^-1 b - A^-1 (C x_sep), the first solved once, the second
+            # from the few rows C couples (recovery.SparseSolve), at every back substitution
+            if self._affine is None:
+                rows = np.flatnonzero(np.diff(self.C.indptr))
+                self._affine = (self.factor.solve(self.b), self.factor.sparse(rows), sp.csr_matrix(self.C[rows]))
+            k, sparse, Cr = self._affine
+            x[self.idx] = k - sparse.solve(np.asarray(Cr @ x[self.cidx]).ravel())
+            return
+        r = self.b - self.C @ x[self.cidx] if len(self.cidx) else self.b.copy()
+        if self.Dinv is not None:
+            x[self.idx] = np.einsum("fij,fj->fi", self.Dinv, r.reshape(-1, 3)).ravel()
+        else:
+            x[self.idx] = self.factor.solve(r)
+
 
 
 @dataclass
@@ -45,13 +100,13 @@ class _Merged:
     columns): one sparse product, the rows of ``M`` as sparse as ``C``'s (a feature's
     three rows couple to the same poses)."""
 
-    conds: "tuple[Conditional, ...]"
+    conds: tuple[Conditional, ...]
     idx: IntArray
     m: Array
     M: sp.csr_matrix
 
     @staticmethod
-    def of(conds: "list[Conditional]") -> "_Merged":
+    def of(conds: list[Conditional]) -> "_Merged":
         data, cols, ptr = [], [], [np.zeros(1, np.int64)]
         end = 0
         for c in conds:
@@ -70,7 +125,7 @@ class _Merged:
         D = sp.csr_matrix((Dinv.reshape(-1, 3).ravel(), (rows, cols)), shape=(len(idx), len(idx)))
         return _Merged(tuple(conds), idx, D @ np.concatenate([c.b for c in conds]), sp.csr_matrix(D @ C))
 
-    def same(self, conds: "list[Conditional]") -> bool:
+    def same(self, conds: list[Conditional]) -> bool:
         return len(conds) == len(self.conds) and all(a is b for a, b in zip(conds, self.conds))
 
     def apply(self, x: Array) -> None:
@@ -88,7 +143,7 @@ class BackSubstitution:
     def clear(self) -> None:
         self._chunks.clear()
 
-    def apply(self, conds: "list[Conditional | None]", x: Array, start: int = 0) -> Array:
+    def apply(self, conds: list[Conditional | None], x: Array, start: int = 0) -> Array:
         """Recover every eliminated state of ``conds[start:]`` (elimination order; ``None``
         for an undone slot) into ``x`` (in place), whose active entries hold the window's
         solution. Returns ``x``.

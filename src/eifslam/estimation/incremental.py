@@ -68,7 +68,8 @@ from .elimination import FeatureElimination
 from .statedict import sub, take_ids, take_int
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout
 from .reactivation import ReactivatingWindow
-from .window import Conditional, RecoveryStats, pose_cholesky, spd_inverse_3x3
+from .backsub import Conditional
+from .window import RecoveryStats, pose_cholesky, spd_inverse_3x3
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]

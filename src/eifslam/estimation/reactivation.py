@@ -19,7 +19,8 @@ from scipy.linalg import cho_solve
 
 from ..errors import EstimatorError
 from .state import FEATURE_DIM, POSE_DIM
-from .window import ActiveWindow, Conditional, pose_cholesky
+from .backsub import Conditional
+from .window import ActiveWindow, pose_cholesky
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]

@@ -18,7 +18,7 @@ subclasses it. Pure NumPy/SciPy.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from scipy.linalg import cho_factor, cho_solve, solve
 
 from ..errors import EstimatorError
-from .backsub import BackSubstitution
+from .backsub import BackSubstitution, Conditional
 from .schur import coupled_poses, subtract_gram
 from .state import FEATURE_DIM, POSE_DIM
 
@@ -69,63 +69,6 @@ class RecoveryStats:
     window_features: int = 0
     max_window_poses: int = 0
     indefinite_solves: int = 0
-
-
-@dataclass
-class Conditional:
-    """``x[idx] = solve(b - C @ x[cidx])``; ``solve`` is 3x3 blocks, a Cholesky or a factor.
-
-    Attributes
-    ----------
-    idx : (m,) state entries eliminated.
-    b : (m,) their information vector at elimination.
-    C : (m, c) their information coupling to the separator ``cidx`` (CSR for features
-        and a rebuild, dense for poses).
-    cidx : (c,) separator: entries that were active when ``idx`` was eliminated.
-    Dinv : (m/3, 3, 3) features: inverses of the 3x3 information blocks ``A``.
-    chol : poses: Cholesky factor of ``A`` (``cho_factor``).
-    factor : rebuild: factorisation of the eliminated part (cannot be undone).
-    A : (m/3, 3, 3) features or (m, m) poses: the eliminated information block, kept so
-        that the elimination can be undone exactly (:meth:`IncrementalRecovery._reactivate`).
-    """
-
-    idx: IntArray
-    b: Array
-    C: Array | sp.csr_matrix
-    cidx: IntArray
-    Dinv: Array | None = None
-    chol: tuple | None = None
-    factor: object | None = None
-    A: Array | None = None
-
-    _affine: tuple | None = field(default=None, repr=False, compare=False)
-
-    def apply(self, x: Array) -> None:
-        """``x[idx] = solve(b - C x[cidx])`` in place; a pose batch as ``k - K x[cidx]``
-        with ``k = A^-1 b``, ``K = A^-1 C`` solved once (a conditional is never changed:
-        undoing one replaces it), one product a back-substitution; a rebuild as
-        ``k - A^-1 (C x[cidx])`` with ``k`` solved once and the second solve reading only
-        the rows ``C`` couples."""
-        if self.chol is not None:
-            if self._affine is None:
-                self._affine = (cho_solve(self.chol, self.b), cho_solve(self.chol, self.C))
-            k, K = self._affine
-            x[self.idx] = k - K @ x[self.cidx] if len(self.cidx) else k
-            return
-        if self.factor is not None and len(self.cidx):
-            # a rebuild: x = A^-1 b - A^-1 (C x_sep), the first solved once, the second
-            # from the few rows C couples (recovery.SparseSolve), at every back substitution
-            if self._affine is None:
-                rows = np.flatnonzero(np.diff(self.C.indptr))
-                self._affine = (self.factor.solve(self.b), self.factor.sparse(rows), sp.csr_matrix(self.C[rows]))
-            k, sparse, Cr = self._affine
-            x[self.idx] = k - sparse.solve(np.asarray(Cr @ x[self.cidx]).ravel())
-            return
-        r = self.b - self.C @ x[self.cidx] if len(self.cidx) else self.b.copy()
-        if self.Dinv is not None:
-            x[self.idx] = np.einsum("fij,fj->fi", self.Dinv, r.reshape(-1, 3)).ravel()
-        else:
-            x[self.idx] = self.factor.solve(r)
 
 
 def _scatter_add(A: Array, flat: IntArray, v: Array) -> None:

@@ -47,7 +47,7 @@ def place_late(slam: "Slam", frames: Sequence[int], reason: str, relative: bool 
     int
         How many frames were placed; their :class:`TrackResult` are updated in place.
     """
-    from .slam import TrackingState, TrackResult
+    from .results import TrackingState, TrackResult
 
     placed: list[tuple[int, int | None, dict[str, float]]] = []
     for j in frames:
@@ -92,7 +92,7 @@ def unplaced_initial(slam: "Slam", k: int) -> list[int]:
     k : int
         The current frame (a keyframe with a pose).
     """
-    from .slam import TrackingState
+    from .results import TrackingState
 
     results = slam.results
     first = next((r.frame_id for r in results if r.frame_id > 0 and r.position is not None

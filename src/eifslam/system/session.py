@@ -27,7 +27,7 @@ import os
 import tempfile
 import zipfile
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Mapping
 
 import numpy as np
 
@@ -145,8 +145,15 @@ def _pack_results(results: "list[TrackResult]") -> dict:
 
 
 # -- load -------------------------------------------------------------------------------
-def load_session(path: str | Path) -> "Slam":
+def load_session(path: str | Path, make: Callable[..., "Slam"]) -> "Slam":
     """Load a session saved by :func:`save_session`.
+
+    Parameters
+    ----------
+    path : str or Path
+    make : callable
+        ``(camera, config) -> Slam``: the system to restore into (``Slam`` itself; passed
+        in, so that this module never imports the one that uses it).
 
     Raises
     ------
@@ -157,7 +164,7 @@ def load_session(path: str | Path) -> "Slam":
     """
     try:
         doc, arrays = _read(Path(path))
-        return _build(_join(doc, arrays, 0))
+        return _build(_join(doc, arrays, 0), make)
     except SessionError as exc:
         raise SessionError(_one_line(f"{path}: not a usable eifslam session: {exc}")) from None
     except EifslamError as exc:  # a config or camera in the file that this eifslam refuses
@@ -234,10 +241,9 @@ def _join(v: Any, arrays: Mapping[str, np.ndarray], depth: int) -> Any:
     return v
 
 
-def _build(doc: Mapping[str, Any]) -> "Slam":
+def _build(doc: Mapping[str, Any], make: Callable[..., "Slam"]) -> "Slam":
     from ..geometry.camera import PinholeCamera
     from .config import SlamConfig
-    from .slam import Slam
 
     cam = sub(doc, "camera")
     dist = cam.get("distortion")
@@ -249,7 +255,7 @@ def _build(doc: Mapping[str, Any]) -> "Slam":
     cfg = sub(doc, "config")
     if not all(isinstance(v, Mapping) for v in cfg.values()):
         raise SessionError("entry 'config' must map sections to settings")
-    slam = Slam(camera, SlamConfig.from_dict(cfg))
+    slam = make(camera, SlamConfig.from_dict(cfg))
     results = _unpack_results(sub(doc, "results"))
     slam.filter.load_state_dict(sub(doc, "filter"))
     slam.frontend.load_state_dict(sub(doc, "frontend"))
@@ -275,7 +281,7 @@ def _build(doc: Mapping[str, Any]) -> "Slam":
 
 
 def _unpack_results(d: Mapping[str, Any]) -> "list[TrackResult]":
-    from .slam import TrackingState, TrackResult
+    from .results import TrackingState, TrackResult
 
     fid = take_ids(d, "frame_id")
     n = len(fid)
