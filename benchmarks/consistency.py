@@ -3,7 +3,7 @@
 Each run is a synthetic corridor (:func:`eifslam.sim.synthetic.corridor_scene`, its own
 scene and noise seed) measured by :class:`eifslam.sim.frontend.SyntheticFrontEnd` and run
 through the system (:class:`eifslam.system.slam.Slam`) at its default settings (only
-``system.sigma_px`` and ``system.scale_distance`` come from the simulation, so that the
+``frontend.sigma_px`` and ``system.scale_distance`` come from the simulation, so that the
 estimate is in the truth's gauge: first pose the identity, distance between the first two
 poses the true one). After every ``--every``-th frame the normalised estimation error
 squared (NEES) of the latest pose, 6 DOF ``[p, dtheta]``, is taken from the filter's

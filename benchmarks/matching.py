@@ -4,7 +4,7 @@ Usage::
 
     python benchmarks/matching.py --data ../shared/datasets/kitti-seq1 --out out/matching
     python benchmarks/matching.py --data ../shared/datasets/7scenes-redkitchen-a --detector orb \\
-        --max-frames 150 --set binary_index=lsh --out out/matching --tag lsh
+        --max-frames 150 --set match_window=1 --out out/matching --tag window1
 
 The features of the first ``--max-frames`` images are detected once and cached
 (``OUT/features-<set>-<detector>-<n>.pkl``, reused by later runs); then a fresh front end

@@ -51,7 +51,7 @@ from _common import (  # noqa: E402
     short_error, split_list, write_json,
 )
 
-DETECTORS = ("sift", "orb", "akaze", "surf")
+DETECTORS = ("sift", "orb", "akaze")
 
 #: Stages summarised (median and p95 ms per frame); ``wait``/``load`` is the time the
 #: tracking thread spent getting the frame; ``match_ahead`` the matching made in the

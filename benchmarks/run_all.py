@@ -42,7 +42,7 @@ from _common import (  # noqa: E402
 )
 
 MODES = ("filter", "smooth", "ba")
-DETECTORS = ("sift", "orb", "akaze", "surf")
+DETECTORS = ("sift", "orb", "akaze")
 
 #: (title, row key) of the per-stage columns: median milliseconds per frame.
 STAGE_COLUMNS: tuple[tuple[str, str], ...] = (

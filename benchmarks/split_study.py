@@ -267,7 +267,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--datasets", default=DEFAULT_DATASETS,
                    help=f"data set folder names, '{BUILTIN}' for the built-in scene (default {DEFAULT_DATASETS})")
     p.add_argument("--mode", choices=["filter", "smooth", "ba"], default="smooth", help="SLAM mode (default smooth)")
-    p.add_argument("--detector", choices=["sift", "orb", "akaze", "surf"], default="sift", help="detector (default sift)")
+    p.add_argument("--detector", choices=["sift", "orb", "akaze"], default="sift", help="detector (default sift)")
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames per run")
     p.add_argument("--docs", type=Path, default=None, help="also write a Markdown page (and the PNG next to it)")
     p.add_argument("--progress", action="store_true", help="show each run's per-frame progress bar")

@@ -275,18 +275,6 @@ def test_consistency_jobs_and_diagnosis(tmp_path):
     assert res["mean"]["s"] == pytest.approx(one["smooth"]["mean_nees"], rel=1e-9)
 
 
-def test_consistency_keyframes_smoke(tmp_path):
-    """benchmarks/consistency_keyframes.py on one short slow run writes both settings."""
-    kf = _load("consistency_keyframes")
-    assert kf.main(["--out", str(tmp_path), "--runs", "1", "--frames", "12"]) == 0
-    res = json.loads((tmp_path / "consistency_keyframes.json").read_text())
-    assert set(res) == {"map_pose_uncertainty=False", "map_pose_uncertainty=True"}
-    off, on = res["map_pose_uncertainty=False"], res["map_pose_uncertainty=True"]
-    assert off["keyframes"] == on["keyframes"]  # keyframes are unchanged
-    if off["runs"] and off["between"]["n"]:
-        assert on["between"]["mean_nees"] <= off["between"]["mean_nees"]
-
-
 def test_loo_study_choice_and_outputs(tmp_path, monkeypatch):
     """The leave-one-out choice on fake ATEs: a value is chosen on the other sets alone
     (so the held-out set's own figures never choose it), and the JSON and docs page."""
@@ -331,26 +319,6 @@ def test_loo_study_choice_and_outputs(tmp_path, monkeypatch):
 DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 
 
-def test_dark_ring_refuses_bad_input(tmp_path):
-    dark_ring = _load("dark_ring")
-    assert dark_ring.main(["--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 2  # no templering
-    if (DATASETS / "middlebury-templering").is_dir():
-        assert dark_ring.main(["--data", str(DATASETS), "--out", str(tmp_path / "o"), "--factors", "2"]) == 2
-
-
-@pytest.mark.skipif(not (DATASETS / "middlebury-templering").is_dir(), reason="../shared/datasets absent")
-def test_dark_ring_writes_its_rings_and_figures(tmp_path, capsys):
-    """Every 10th templering view (4) at 30% brightness: the ring's images are that dark
-    (the 99.99th percentile recorded), both settings run, the JSON holds both rows."""
-    dark_ring = _load("dark_ring")
-    assert dark_ring.main(["--data", str(DATASETS), "--out", str(tmp_path), "--factors", "0.3", "--step", "10",
-                           "--mode", "filter"]) in (0, 1)
-    doc = json.loads((tmp_path / "dark_ring.json").read_text())
-    rows = doc["rows"]
-    assert [r["normalise_gain"] for r in rows] == [False, True]
-    assert all(r["views"] == 4 and 50 < r["level_min"] <= r["level_max"] < 90 for r in rows)
-    assert len(list((tmp_path / "rings" / "x0.3" / "images").iterdir())) == 4
-    assert "| 0.3 | sift |" in capsys.readouterr().out
 
 
 def test_loop_scoring_view_overlap_and_same_place():

@@ -335,13 +335,12 @@ def test_the_run_holds_opencv_to_its_thread_setting_and_gives_it_back(scene_fram
     from eifslam.system.runner import opencv_thread_count
 
     def cfg(**kw) -> SlamConfig:
-        fe = {k: kw.pop(k) for k in ("detector", "binary_index") if k in kw}
+        fe = {k: kw.pop(k) for k in ("detector",) if k in kw}
         return SlamConfig.from_dict({"frontend": fe, "system": kw})
 
     assert opencv_thread_count(cfg(), prefetch=2) == 1
     assert opencv_thread_count(cfg(), prefetch=0) is None
     assert opencv_thread_count(cfg(detector="orb"), prefetch=2) is None
-    assert opencv_thread_count(cfg(detector="orb", binary_index="lsh"), prefetch=2) == 1
     assert opencv_thread_count(cfg(opencv_threads=3, detector="orb"), prefetch=2) == 3
     assert opencv_thread_count(cfg(opencv_threads=None), prefetch=2) is None
     before = cv2.getNumThreads()

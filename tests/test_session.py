@@ -40,7 +40,7 @@ def _poses(slam: Slam) -> np.ndarray:
 @pytest.mark.parametrize("recovery", ["full", "incremental"])
 def test_a_loaded_session_continues_as_the_uninterrupted_run(scene_images, tmp_path, recovery):
     scene, images = scene_images
-    cfg = SlamConfig().replace(system={"recovery": recovery, "keyframes": True,  # keyframe state saved too
+    cfg = SlamConfig().replace(system={"recovery": recovery,  # keyframe state saved too
                                        "keyframe_parallax_deg": 2.0,  # (frames between keyframes)
                                        "loop_train_frames": 3, "loop_learn_lag": 5})  # and a learnt place index
     whole = _run(scene, images, cfg, range(9))

@@ -86,7 +86,7 @@ def test_affine_matching_relates_a_slanted_view_plain_sift_barely_does():
 def test_wide_baseline_config_is_checked():
     assert SlamConfig().system.wide_baseline is False
     for bad in ({"wide_baseline": 1}, {"wide_baseline_max_tilt": 0.5}, {"wide_baseline_references": 0},
-                {"wide_baseline_min_map_features": 3}, {"wide_baseline_relative": "yes"}):
+                {"wide_baseline_min_map_features": 3}):
         with pytest.raises(ConfigError):
             SlamConfig.from_dict({"system": bad})
 

@@ -12,7 +12,7 @@ from typing import Any, Mapping
 from ..errors import ConfigError
 from ..estimation.options import Choice
 
-__all__ = ["FrontEndConfig", "Detector", "CovarianceMethod", "DETECTORS", "COVARIANCE_METHODS"]
+__all__ = ["FrontEndConfig", "Detector", "DETECTORS"]
 
 
 class Detector(Choice):
@@ -21,26 +21,16 @@ class Detector(Choice):
     SIFT = "sift"
     ORB = "orb"
     AKAZE = "akaze"
-    SURF = "surf"
 
     @property
     def float_descriptors(self) -> bool:
-        """Whether its descriptors are floats (SIFT, SURF) rather than binary (ORB, AKAZE)."""
-        return self in (Detector.SIFT, Detector.SURF)
-
-
-class CovarianceMethod(Choice):
-    """How the relative pose's covariance is computed (a ``str`` enum)."""
-
-    FAST = "fast"  #: first order, ``sigma_px**2 (J^T J)^-1`` of the Sampson residuals
-    UT = "ut"  #: unscented transform of the point noise through the refinement
+        """Whether its descriptors are floats (SIFT) rather than binary (ORB, AKAZE)."""
+        return self is Detector.SIFT
 
 
 DETECTORS = tuple(d.value for d in Detector)
-COVARIANCE_METHODS = tuple(c.value for c in CovarianceMethod)
 COLOR_ORDERS = ("bgr", "rgb")
 RANSAC_METHODS = ("usac", "magsac", "ransac")
-BINARY_INDEXES = ("bruteforce", "lsh")
 
 
 @dataclass(frozen=True)
@@ -53,8 +43,8 @@ class FrontEndConfig:
 
     Attributes
     ----------
-    detector : Detector or {"sift", "orb", "akaze", "surf"}
-        Feature detector/descriptor (stored as a :class:`Detector`). SURF and AKAZE need an OpenCV build that ships them.
+    detector : Detector or {"sift", "orb", "akaze"}
+        Feature detector/descriptor (stored as a :class:`Detector`). AKAZE needs an OpenCV build that ships it (the contrib wheel does).
     max_features : int
         Cap on keypoints per image (the strongest are kept). 2000: the system's choice,
         measured on the shared data sets (docs/system.md); 1000 already gives the same
@@ -65,30 +55,10 @@ class FrontEndConfig:
     sift_contrast_threshold : float > 0
         SIFT's contrast threshold (OpenCV's ``contrastThreshold``, 0.04 by default; OpenCV
         divides it by ``sift_octave_layers``): weaker extrema are dropped.
-    sift_precise_upscale : bool
-        OpenCV's ``enable_precise_upscale``: the doubled first octave maps pixel ``x`` to
-        ``2x``. Without it every SIFT keypoint is detected a quarter pixel right of and
-        below where it is (rendered blobs, docs/frontend.md). Off by default: it lost on
-        five of the seven shared sets (leave-one-out, docs/loo_study.md).
-    orb_candidates : float >= 1
-        ORB detects this many times ``max_features`` keypoints and keeps ``max_features`` of
-        them spread over the image (:func:`~eifslam.frontend.features.spread_keypoints`:
-        strongest first in each cell of a grid of about two keypoints per cell, cell by
-        cell), instead of OpenCV's strongest, which cluster on the most textured parts.
-        1 (default): OpenCV's selection. 2 lowered the median ORB ATE over three feature
-        counts on five of the seven shared sets but failed kitti-07 twice in three runs
-        (docs/frontend.md, "Spreading ORB's keypoints").
     detect_scale : float in (0, 1]
         Images are resized by this factor (``INTER_AREA``) before detection and the
         keypoints scaled back to full-resolution pixels (1: detect at full resolution).
         Colours and the Laplacian sign are taken from the full-resolution image.
-    normalise_gain : bool
-        Before detection, scale a dark grayscale image (its 99.99th percentile below half
-        the range) so that the percentile becomes 255
-        (:func:`~eifslam.frontend.features.normalise_gain`). The detectors' thresholds
-        (SIFT's contrast, FAST's intensity step) are absolute intensities, so without it a
-        dark image (a dark object, a short exposure, 12-bit data in 16-bit files) gives
-        few keypoints or none (docs/frontend.md, "Dark images").
     color_order : {"bgr", "rgb"}
         Channel order of 3-channel input images (OpenCV's ``imread`` gives BGR).
     map_fraction : float in [0, 1]
@@ -99,14 +69,9 @@ class FrontEndConfig:
     mutual : bool
         Keep only mutual nearest neighbours.
     flann_trees : int >= 1
-        Randomised k-d trees of the FLANN index (float descriptors: SIFT, SURF).
+        Randomised k-d trees of the FLANN index (float descriptors: SIFT).
     flann_checks : int >= 1
         Leaves FLANN visits per query (more: closer to exact nearest neighbours, slower).
-    binary_index : {"bruteforce", "lsh"}
-        Search of binary descriptors (ORB, AKAZE) when frames are matched: exact Hamming
-        brute force, or a FLANN locality-sensitive hashing index per frame, built once and
-        reused like the k-d forest of float descriptors (approximate: a quarter off ORB's
-        matching, but one 7-Scenes run failed with it; docs/realtime.md. Not for use yet).
     match_window : int >= 1
         A new frame is matched against this many previous frames (1 = previous only; 3
         by default); older frames only see keypoints still unmatched, to recover tracks
@@ -136,18 +101,10 @@ class FrontEndConfig:
         Pure-rotation test, degrees: the median angle left after the best pure-rotation
         fit of the bearings must exceed this (about the noise level for a pure rotation or
         a repeated frame); below it the pair has "no parallax" whatever the solver says.
-    refine : bool
-        Refine the RANSAC ``R, t`` by Gauss-Newton on the inliers' Sampson error.
     refine_iterations : int >= 1
         Gauss-Newton iterations of that refinement.
     sigma_px : float > 0
         Standard deviation of image-point noise per coordinate, pixels.
-    covariance : CovarianceMethod or {"fast", "ut"}
-        ``"fast"``: first-order ``sigma_px**2 (J^T J)^-1`` of the Sampson residuals;
-        ``"ut"``: unscented transform of the point noise through the refinement.
-    ut_max_points : int >= 5
-        The UT uses at most this many inliers (evenly subsampled) to bound its cost; the
-        covariance is then scaled by ``n_used / n_inliers``.
     prefetch : int >= 0
         How many frames ahead :func:`eifslam.system.runner.run_sequence` decodes and
         detects in a worker thread while the current frame is matched and fused (a
@@ -166,10 +123,7 @@ class FrontEndConfig:
     max_features: int = 2000
     sift_octave_layers: int = 3
     sift_contrast_threshold: float = 0.04
-    sift_precise_upscale: bool = False
-    orb_candidates: float = 1.0
     detect_scale: float = 1.0
-    normalise_gain: bool = True
     color_order: str = "bgr"
     # split of tracks between relative poses (Ωp) and the map (Ωm)
     map_fraction: float = 0.5
@@ -178,7 +132,6 @@ class FrontEndConfig:
     mutual: bool = True
     flann_trees: int = 4
     flann_checks: int = 48
-    binary_index: str = "bruteforce"
     match_window: int = 3
     ransac_threshold_px: float = 1.0
     ransac_confidence: float = 0.9999
@@ -189,12 +142,9 @@ class FrontEndConfig:
     min_common: int = 20
     min_parallax_deg: float = 0.5
     min_rotation_residual_deg: float = 0.1
-    refine: bool = True
     refine_iterations: int = 3
     # uncertainty
     sigma_px: float = 1.0
-    covariance: CovarianceMethod = CovarianceMethod.FAST
-    ut_max_points: int = 300
     # pipelining (the runner)
     prefetch: int = 2
     # repeatability
@@ -204,16 +154,12 @@ class FrontEndConfig:
         def bad(key: str, msg: str) -> ConfigError:
             return ConfigError(f"front-end config '{key}': {msg}, got {getattr(self, key)!r}")
 
-        for key, enum, names in (("detector", Detector, DETECTORS), ("covariance", CovarianceMethod,
-                                                                         COVARIANCE_METHODS)):
-            try:
-                object.__setattr__(self, key, enum(getattr(self, key)))
-            except ValueError:
-                raise bad(key, f"must be one of {names}") from None
+        try:
+            object.__setattr__(self, "detector", Detector(self.detector))
+        except ValueError:
+            raise bad("detector", f"must be one of {DETECTORS}") from None
         if self.ransac_method not in RANSAC_METHODS:
             raise bad("ransac_method", f"must be one of {RANSAC_METHODS}")
-        if self.binary_index not in BINARY_INDEXES:
-            raise bad("binary_index", f"must be one of {BINARY_INDEXES}")
         if self.color_order not in COLOR_ORDERS:
             raise bad("color_order", f"must be one of {COLOR_ORDERS}")
         ints = {
@@ -224,7 +170,6 @@ class FrontEndConfig:
             "min_inliers": 5,
             "min_common": 5,
             "refine_iterations": 1,
-            "ut_max_points": 5,
             "flann_trees": 1,
             "flann_checks": 1,
             "prefetch": 0,
@@ -233,7 +178,7 @@ class FrontEndConfig:
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
                 raise bad(key, f"must be an integer >= {lo}")
-        for key in ("mutual", "refine", "normalise_gain", "sift_precise_upscale"):
+        for key in ("mutual",):
             if not isinstance(getattr(self, key), bool):
                 raise bad(key, "must be a bool")
         checks = {
@@ -245,7 +190,6 @@ class FrontEndConfig:
             "min_rotation_residual_deg": lambda v: 0.0 <= v < 90.0,
             "sigma_px": lambda v: 0.0 < v < 1e3,
             "sift_contrast_threshold": lambda v: 0.0 < v < 1.0,
-            "orb_candidates": lambda v: 1.0 <= v <= 20.0,
             "detect_scale": lambda v: 0.0 < v <= 1.0,
         }
         for key, ok in checks.items():
@@ -256,9 +200,9 @@ class FrontEndConfig:
     @property
     def flann_search(self) -> bool:
         """Whether frames are matched with a FLANN index (approximate, built with OpenCV's
-        seeded generator, serial): float descriptors, or binary ones with ``binary_index:
-        lsh``; otherwise binary descriptors are searched exactly by brute force."""
-        return self.detector.float_descriptors or self.binary_index == "lsh"
+        seeded generator, serial): float descriptors; binary descriptors are searched
+        exactly by brute force."""
+        return self.detector.float_descriptors
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> "FrontEndConfig":

@@ -55,31 +55,12 @@ class SystemConfig:
         frames wait, and are localised on the map once it exists. Set it above the front
         end's ``min_parallax_deg`` (the default equals it) for a better triangulated first
         map.
-    sigma_px : float or None
-        Standard deviation of a map feature's pixel measurement ``Zm``; None (default):
-        the front end's ``sigma_px`` (1 px), the keypoint noise its unscented transform
-        gives the relative poses, for every detector. (It was 2 px for binary
-        descriptors, ORB and AKAZE, until every shared set measured better at 1 px with
-        ORB: filter ATE kitti-07 7.51 -> 0.742 m, 7scenes-redkitchen-a 0.087 -> 0.056 m,
-        kitti-seq1 0.202 -> 0.190 m, templering, fountain, herzjesu and castle 8-21%
-        lower; docs/frontend.md.) See :meth:`SlamConfig.zm_sigma_px`.
     scale_distance : float
         Length given to the distance between the first two poses (the scale gauge).
     relative_gate_chi2 : float or None
         A ``ZR``/``ZT`` pair whose normalised innovation squared (5 DOF) at the pose the
         known map supports exceeds this is not fused (a wrong five-point solution or an
         overconfident covariance); ``None`` fuses every pair.
-    relative_gate_pose_uncertainty : bool or "joint"
-        Test a ``ZR``/``ZT`` against its covariance plus the poses' uncertainty
-        (:func:`~eifslam.system.tracking.relative_gate_statistic`) instead of its
-        covariance alone: True adds both poses' marginals, ``"joint"`` the uncertainty of
-        the new pose relative to the reference pose (the joint covariance of the reference
-        pose and the map features the new pose was localised on). Off by default. Both
-        make the smoothed NEES consistent on the synthetic corridor (8.57 -> 6.79) but
-        admit wrong relative poses on real images, where the stated 1 px noise is about 5
-        times too large (smoothed ATE, SIFT, seeds 0/1/2: strecha-castle-p30 0.160 / 0.159
-        / 0.149 -> 0.159 / 0.230 / 0.218 m); chosen leave-one-set-out, every set but
-        strecha-castle-p30 gets False (docs/estimator.md, session 38).
     robust_smoothing : bool
         After its passes, smoothing drops the ``ZR``/``ZT`` that fail
         ``relative_gate_chi2`` (worst first), then the ``Zm`` that fail the filter's
@@ -133,17 +114,6 @@ class SystemConfig:
     inlier_radius_px : float
         A known feature fits the relative-pose guess when it projects within this many
         pixels of its measurement (for ``contradiction_ratio``).
-    keyframes : bool
-        Only keyframes become states of the filter (paper: "select poses with a large
-        baseline"); every other frame is localised on the map, pose only, with its
-        covariance given the map, and carried with its reference keyframe afterwards
-        (:mod:`eifslam.system.keyframes`). True (default); False: every frame is a keyframe
-        (Algorithm 1 on every image). Measured when keyframes were introduced (issue 12;
-        current figures: docs/results.md), at the default parallax, seed 0, SIFT
-        (docs/realtime.md): 7scenes-redkitchen-a 185 keyframes of 500, filter ATE 0.042 m
-        and smooth 0.040 m against 0.054 m and 0.052 m with every frame in the filter;
-        kitti-07 filter 0.293 m against 0.300 m; kitti-seq1 0.0302 m / 0.0172 m both ways;
-        the Strecha and Middlebury sets unchanged.
     keyframe_parallax_deg : float or None
         A frame becomes a keyframe once the median parallax of the map features it shares
         with the last keyframe reaches this angle, degrees. None (default): a quarter of
@@ -162,15 +132,6 @@ class SystemConfig:
         ... or once this many seconds have passed since the last keyframe (timestamps as
         given to :meth:`Slam.track`; frame indices when none are given, so that every
         frame is then a keyframe).
-    map_pose_uncertainty : bool
-        The covariance of a frame between keyframes (localised on the map, not a state)
-        includes the map's uncertainty: ``C + A P_X A^T``, ``P_X`` the joint covariance of
-        the map features it was localised on (from the filter's incremental window;
-        :func:`~eifslam.estimation.localisation.map_pose_covariance`). False: the
-        covariance given the map, which leaves the map's error out and is overconfident.
-        Only the reported covariance changes, never an estimate. After smoothing or
-        bundle adjustment the window is stale, so :meth:`Slam.finish`'s re-localisation of
-        these frames reports the covariance given the map again.
     loop_closure : bool
         Place recognition on the filter's frames, geometric verification and fusion of
         the loop's ``Zm`` (:mod:`eifslam.system.loops`); ``--loop-closure`` sets it True,
@@ -222,9 +183,6 @@ class SystemConfig:
         A frame placed by wide-baseline matching needs at least this many known map
         features on its joined tracks (it is localised on them, starting from the
         relative pose of the matches).
-    wide_baseline_relative : bool
-        With fewer map features, fuse the relative pose of the wide-baseline matches
-        instead (off: on templering it is 7 degrees off and costs accuracy).
     blas_threads : int >= 1 or None
         Threads of the BLAS library (NumPy and SciPy's dense algebra) while
         :func:`~eifslam.system.runner.run_sequence` runs (1; None: the library's own
@@ -236,7 +194,7 @@ class SystemConfig:
         OpenCV's worker threads while :func:`~eifslam.system.runner.run_sequence` runs
         (None: OpenCV's own setting, one per core). ``"auto"``: 1 when detection runs in
         the prefetch worker and the tracking thread's descriptor search is FLANN's (float
-        descriptors, or ``frontend.binary_index: lsh``), which is serial: OpenCV's pool then
+        descriptors), which is serial: OpenCV's pool then
         only adds threads to the detection, which already has a core of its own, and they
         compete with the tracking thread (kitti-seq1, SIFT, filter: 7.6 s against 8.3 s,
         medians of 4 runs; 7scenes-redkitchen-a 33.0 s against 34.3 s). OpenCV's own
@@ -251,12 +209,10 @@ class SystemConfig:
     relocalise_candidates: int = 30
     min_feature_parallax_deg: float = 2.0
     init_parallax_deg: float = 0.5
-    sigma_px: float | None = None
     scale_distance: float = 1.0
     recovery: Recovery = Recovery.INCREMENTAL
     window: int = 5
     relative_gate_chi2: float | None = 50.0
-    relative_gate_pose_uncertainty: bool | str = False
     robust_smoothing: bool = True
     smoothing_noise_estimate: NoiseEstimate = NoiseEstimate.TRACK_LENGTH
     reobserve_radius_px: float | None = None
@@ -267,11 +223,9 @@ class SystemConfig:
     map_inlier_fraction: float = 0.7
     contradiction_ratio: float = 1.5
     inlier_radius_px: float = 4.0
-    keyframes: bool = True
     keyframe_parallax_deg: float | None = None
     keyframe_min_tracked: float = 0.5
     keyframe_max_interval_s: float = 1.0
-    map_pose_uncertainty: bool = True
     loop_closure: bool = True
     loop_words: int = 256
     loop_train_frames: int = 20
@@ -284,7 +238,6 @@ class SystemConfig:
     wide_baseline_max_tilt: float = 2.0
     wide_baseline_references: int = 2
     wide_baseline_min_map_features: int = 6
-    wide_baseline_relative: bool = False
     blas_threads: int | None = 1
     opencv_threads: int | str | None = "auto"
 
@@ -307,9 +260,6 @@ class SystemConfig:
         v = self.loop_false_alarm
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 < v < 1.0:
             raise ConfigError(f"system.loop_false_alarm must lie in (0, 1), got {v!r}")
-        if not (isinstance(self.relative_gate_pose_uncertainty, bool) or self.relative_gate_pose_uncertainty == "joint"):
-            raise ConfigError("system.relative_gate_pose_uncertainty must be true, false or 'joint', "
-                              f"got {self.relative_gate_pose_uncertainty!r}")
         if not isinstance(self.wide_baseline, bool):
             raise ConfigError(f"system.wide_baseline must be true or false, got {self.wide_baseline!r}")
         v = self.wide_baseline_max_tilt
@@ -327,11 +277,6 @@ class SystemConfig:
         v = self.opencv_threads
         if v is not None and v != "auto" and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
             raise ConfigError(f"system.opencv_threads must be an integer >= 1, 'auto' or null, got {v!r}")
-        if not isinstance(self.wide_baseline_relative, bool):
-            raise ConfigError("system.wide_baseline_relative must be true or false, "
-                              f"got {self.wide_baseline_relative!r}")
-        if not isinstance(self.keyframes, bool):
-            raise ConfigError(f"system.keyframes must be true or false, got {self.keyframes!r}")
         if self.keyframe_parallax_deg is not None:
             v = self.keyframe_parallax_deg
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 < v < 90.0:
@@ -361,10 +306,8 @@ class SystemConfig:
             raise ConfigError("system.init_parallax_deg must be in [0, 90)")
         if self.reobserve_radius_px is not None and not self.reobserve_radius_px >= 0:
             raise ConfigError("system.reobserve_radius_px must be >= 0")
-        for key in ("min_feature_parallax_deg", "sigma_px", "scale_distance"):
+        for key in ("min_feature_parallax_deg", "scale_distance"):
             v = getattr(self, key)
-            if key == "sigma_px" and v is None:
-                continue
             if not (isinstance(v, (int, float)) and v > 0):
                 raise ConfigError(f"system.{key} must be a positive number, got {v!r}")
 
@@ -423,11 +366,8 @@ class SlamConfig:
 
     @property
     def zm_sigma_px(self) -> float:
-        """Standard deviation of ``Zm``, pixels: ``system.sigma_px``, or by default the
-        front end's keypoint noise ``frontend.sigma_px`` (the one its relative poses'
-        covariances are computed with), whatever the detector."""
-        if self.system.sigma_px is not None:
-            return float(self.system.sigma_px)
+        """Standard deviation of ``Zm``, pixels: the front end's keypoint noise
+        ``frontend.sigma_px`` (the one its relative poses' covariances are computed with)."""
         return float(self.frontend.sigma_px)
 
     @property

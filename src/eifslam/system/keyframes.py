@@ -16,8 +16,7 @@ features triangulated), when one of these measured quantities says so:
 * ``system.keyframe_max_interval_s`` seconds passed since the last keyframe.
 
 Every other frame keeps the map pose and its covariance (given the map, plus the map's own
-uncertainty with ``system.map_pose_uncertainty``)
-(:func:`~eifslam.estimation.localisation.map_pose_covariance`); it is not a state, so the
+uncertainty, :func:`~eifslam.estimation.localisation.map_pose_covariance`); it is not a state, so the
 filter grows with the keyframes only, and the Ωp/Ωm split and the relative poses stay as
 the paper has them, between keyframes. The front end still tracks every frame, so tracks
 run through the frames in between. :meth:`Keyframes.refine` re-localises the frames in
@@ -163,11 +162,6 @@ class Keyframes:
                        for f, r, pp, qq, c, g, k, b, pr, qr in zip(fid, ref, p, q, cov, fig, n_obs, ends, p_rel, q_rel)}
 
     # -- queries ------------------------------------------------------------------
-    @property
-    def enabled(self) -> bool:
-        """Whether frames between keyframes are kept out of the filter."""
-        return bool(self.config.system.keyframes)
-
     def __len__(self) -> int:
         """Number of frames localised on the map (not keyframes)."""
         return len(self._poses)
@@ -222,10 +216,7 @@ class Keyframes:
     def _map_uncertainty(self, track_ids):
         """``G -> G P_X G^T`` for the map features ``track_ids`` (their joint covariance
         from the filter, :meth:`InformationFilter.feature_propagate`): the map's own
-        uncertainty in a frame's covariance; None when ``system.map_pose_uncertainty`` is
-        off."""
-        if not self.config.system.map_pose_uncertainty:
-            return None
+        uncertainty in a frame's covariance."""
         ids = np.asarray(track_ids, np.int64)
         return lambda G: self.filter.feature_propagate(ids, G)
 

@@ -211,7 +211,7 @@ class Slam:
         self._timestamps[k] = ts
         if fr.n_features == 0 and not fr.ok:
             return self._record(TrackResult(k, ts, self._lost_state(), reason=fr.reason, timings_ms=timings), t0)
-        if self.keyframes.enabled and self.filter.layout.n_poses >= 2 and not self._waiting:
+        if self.filter.layout.n_poses >= 2 and not self._waiting:
             res = self._between_keyframes(k, ts, timings)
             if res is not None:
                 return self._record(res, t0)
@@ -304,7 +304,7 @@ class Slam:
             res = self._map_result(mp, res.timestamp, f"{self._keyframe_why}; {res.reason}; kept its map pose",
                                    res.timings_ms)
         self.results.append(res)
-        if self.keyframes.enabled and res.keyframe and res.position is not None \
+        if res.keyframe and res.position is not None \
                 and self.filter.layout.has_pose(res.frame_id):
             self.keyframes.note_keyframe(res.frame_id, res.timestamp)
         if res.position is None and res.state is TrackingState.INITIALISING and res.frame_id > 0:
