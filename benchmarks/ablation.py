@@ -3,10 +3,10 @@
 Usage::
 
     python benchmarks/ablation.py --data ../shared/datasets/middlebury-templering \\
-        --variant default '{}' --variant gate30 '{"filter": {"gate_chi2": 30}}' --out out/abl.json
+        --variant default '{}' --variant gate30 '{"experimental": {"zm_gate_chi2": 30}}' --out out/abl.json
 
 Each variant is a name and a JSON dict of :class:`eifslam.system.config.SlamConfig` overrides
-(``{"frontend": {...}, "filter": {...}, "system": {...}}``), run once per ``--seeds`` value
+(``{"frontend": {...}, "experimental": {...}, ...}``), run once per ``--seeds`` value
 (``frontend.seed``: OpenCV's random generator, which FLANN and RANSAC draw from). Runs
 with different seeds differ by more than many configuration changes do, so compare
 variants by the median over seeds. For each run, the whole sequence is

@@ -34,7 +34,7 @@ that optimum against draws of its posterior (``_posterior``). The relinearisatio
 defaults, 0.05 sigma and 1000 a frame, were chosen on seed 0 among 0.1/50 (the earlier
 default), 0.1/1000, 0.05/1000 and 0.03/1000 and checked on seed 1 (docs/backend.md,
 session 35); the system's own default is still no online relinearisation. The window is
-the system's (``system.window``, 5 steps) unless ``--window`` says otherwise (the earlier
+the system's (``experimental.window``, 5 steps) unless ``--window`` says otherwise (the earlier
 documented runs used 3).
 
 and ``OUT/backend_scaling.png``. ``nnz`` (non-zeros of ``I``) is counted incrementally from
@@ -263,8 +263,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--min-dim", type=int, default=100_000, help="run until this many state entries")
     ap.add_argument("--full-max-dim", type=int, default=25_000, help="full solve each frame up to this size")
     ap.add_argument("--full-every", type=int, default=150, help="time a full solve every N frames (0: never)")
-    ap.add_argument("--window", type=int, default=SlamConfig().system.window,
-                    help="steps before a state leaves the active window (default: the system's, system.window)")
+    ap.add_argument("--window", type=int, default=SlamConfig().experimental.window,
+                    help="steps before a state leaves the active window (default: the system's, experimental.window)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--relinearise-threshold", type=float, default=0.05,
                     help="online relinearisation threshold (sigma) of the incremental run; 0: off")

@@ -20,7 +20,7 @@ is off (linearisation), not its covariance. Writes ``DIR/diagnosis.json`` (per r
 the mean and median of each figure)::
 
     python benchmarks/consistency_diagnosis.py --out DIR --runs 8 --frames 30
-    python benchmarks/consistency_diagnosis.py --out DIR --set filter.gate_chi2=none
+    python benchmarks/consistency_diagnosis.py --out DIR --set experimental.zm_gate_chi2=none
 """
 
 from __future__ import annotations

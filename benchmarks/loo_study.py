@@ -3,7 +3,7 @@
 Usage::
 
     python benchmarks/loo_study.py --data ../shared/datasets --out out/loo \\
-        --param frontend.ransac_confidence --values 0.999,0.9999 --seeds 0,1,2
+        --param experimental.zm_gate_chi2 --values 5.99,9.21 --seeds 0,1,2
     python benchmarks/loo_study.py ... --only strecha-castle-p30,kitti-seq1 --docs docs/loo_study.md
 
 For every value of ``--param`` (a dotted key of the configuration, the other settings the
@@ -100,7 +100,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, required=True, help="folder of data sets")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--param", required=True, help="dotted configuration key, e.g. frontend.ransac_confidence")
+    p.add_argument("--param", required=True, help="dotted configuration key, e.g. experimental.zm_gate_chi2")
     p.add_argument("--values", required=True, help="comma-separated candidate values (the first is the baseline)")
     p.add_argument("--seeds", default="0,1,2", help="comma-separated frontend seeds (default 0,1,2)")
     p.add_argument("--only", default=None, help="comma-separated data set names (default: all under --data)")
@@ -125,7 +125,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for seed in seeds:
             base = SlamConfig().to_dict()
             cfg = SlamConfig.from_dict(merge(base, merge(nested(args.param, v),
-                                                         {"frontend": {"seed": seed}, "system": {"mode": args.mode}})))
+                                                         {"frontend": {"seed": seed}, "smoothing": {"mode": args.mode}})))
             out = args.out / f"{args.param}={v}" / f"seed{seed}"
             tasks = make_tasks(sources, [cfg], out, html=False)
             log(f"{args.param}={v}, seed {seed}: {len(tasks)} runs")

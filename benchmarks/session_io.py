@@ -31,7 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--more", type=int, default=5, help="images tracked after the load")
     ap.add_argument("--repeat", type=int, default=3, help="saves and loads timed (median)")
     ap.add_argument("--recovery", choices=["incremental", "full"], default="incremental",
-                    help="per-frame recovery (system.recovery): a loaded incremental recovery rebuilds its "
+                    help="per-frame recovery (experimental.recovery): a loaded incremental recovery rebuilds its "
                          "window, so its later estimates differ from the uninterrupted run's where the two "
                          "windows keep different states at their last estimate; full recovery has no window")
     ap.add_argument("--out", required=True, type=Path, help="output folder for session_io.json")
@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     more = min(args.more, len(seq) - n)
     images = [seq.load(k) for k in range(n + more)]
     stamps = [seq.frames[k].timestamp for k in range(n + more)]
-    slam = Slam(seq.camera, SlamConfig().replace(system={"recovery": args.recovery}))
+    slam = Slam(seq.camera, SlamConfig().replace(experimental={"recovery": args.recovery}))
     for k in range(n):
         slam.track(images[k], stamps[k])
     args.out.mkdir(parents=True, exist_ok=True)

@@ -187,7 +187,7 @@ def test_run_all_smoke(tmp_path, capsys):
     out = tmp_path / "out"
     docs = tmp_path / "docs" / "results.md"
     cfg = tmp_path / "c.yaml"  # --config: every run takes these settings (mode and detector from the options)
-    cfg.write_text("system:\n  mode: smooth\nfilter:\n  first_estimate_jacobians: features\n")
+    cfg.write_text("smoothing:\n  mode: smooth\nexperimental:\n  first_estimate_jacobians: features\n")
     rc = run_all.main(["--data", str(data), "--out", str(out), "--modes", "filter", "--detectors", "sift",
                        "--only", "tiny", "--docs", str(docs), "--config", str(cfg)])
     rows = json.loads((out / "results.json").read_text())
@@ -199,7 +199,8 @@ def test_run_all_smoke(tmp_path, capsys):
     assert row["frames_tracked"] >= 3 and row["ate_rmse"] is not None and np.isfinite(row["ate_rmse"])
     assert row["ms_total"] > 0
     rep = json.loads((out / "tiny-filter-sift" / "report.json").read_text())
-    assert rep["config"]["filter"]["first_estimate_jacobians"] == "features" and rep["config"]["system"]["mode"] == "filter"
+    assert rep["config"]["experimental"]["first_estimate_jacobians"] == "features" \
+        and rep["config"]["smoothing"]["mode"] == "filter"
     assert not (out / "tiny-filter-sift" / "report.html").exists()
     table = (out / "results.md").read_text()
     assert "| tiny | filter | sift |" in table
@@ -210,7 +211,7 @@ def test_run_all_smoke(tmp_path, capsys):
 
 def test_run_all_refuses_a_bad_config_file(tmp_path, capsys):
     cfg = tmp_path / "bad.yaml"
-    cfg.write_text("filter:\n  first_estimate_jacobians: poses\n")
+    cfg.write_text("experimental:\n  first_estimate_jacobians: poses\n")
     rc = run_all.main(["--data", str(tmp_path), "--out", str(tmp_path / "out"), "--only", "builtin",
                        "--config", str(cfg)])
     assert rc == 2 and not (tmp_path / "out" / "results.json").exists()
@@ -245,8 +246,8 @@ def test_consistency_benchmark_writes_its_json(tmp_path):
     consistency = _load("consistency")
     lo, hi = consistency.interval(50)
     assert lo == pytest.approx(5.08, abs=0.01) and hi == pytest.approx(7.00, abs=0.01)
-    assert consistency.parse_sets(["filter.gate_chi2=none", "system.min_feature_parallax_deg=4"]) == \
-        {"filter": {"gate_chi2": None}, "system": {"min_feature_parallax_deg": 4}}
+    assert consistency.parse_sets(["experimental.zm_gate_chi2=none", "mapping.min_feature_parallax_deg=4"]) == \
+        {"experimental": {"zm_gate_chi2": None}, "mapping": {"min_feature_parallax_deg": 4}}
     assert consistency.main(["--out", str(tmp_path), "--runs", "2", "--frames", "6", "--every", "3"]) == 0
     res = json.loads((tmp_path / "consistency.json").read_text())
     for mode in ("filter", "smooth"):
@@ -298,27 +299,25 @@ def test_loo_study_choice_and_outputs(tmp_path, monkeypatch):
     def fake_serial(tasks, force=False, **kw):
         out = []
         for t in tasks:
-            conf = t.config["frontend"]["ransac_confidence"]
-            ate = ref[t.dataset] * (1.0 if conf > 0.9995 else 1.5)
+            gate = t.config["experimental"]["zm_gate_chi2"]
+            ate = ref[t.dataset] * (1.0 if gate > 7.0 else 1.5)
             out.append({"dataset": t.dataset, "ate_rmse": ate, "tracked": 5, "frames": 5, "status": "done",
                         "seconds": 1.0})
         return out
 
     monkeypatch.setattr(batch, "run_serial", fake_serial)
     docs = tmp_path / "docs" / "loo.md"
-    rc = loo.main(["--data", str(data), "--out", str(tmp_path / "out"), "--param", "frontend.ransac_confidence",
-                   "--values", "0.999,0.9999", "--seeds", "0,1", "--docs", str(docs)])
+    rc = loo.main(["--data", str(data), "--out", str(tmp_path / "out"), "--param", "experimental.zm_gate_chi2",
+                   "--values", "5.99,9.21", "--seeds", "0,1", "--docs", str(docs)])
     assert rc == 0
     res = json.loads((tmp_path / "out" / "loo_study.json").read_text())
     assert len(res["runs"]) == 2 * 2 * 2
-    assert [t["chosen"] for t in res["table"]] == [0.9999, 0.9999]
+    assert [t["chosen"] for t in res["table"]] == [9.21, 9.21]
     text = docs.read_text()
-    assert "Leave-one-data-set-out" in text and "| kitti-seq1 | 0.9999 |" in text
+    assert "Leave-one-data-set-out" in text and "| kitti-seq1 | 9.21 |" in text
 
 
 DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
-
-
 
 
 def test_loop_scoring_view_overlap_and_same_place():

@@ -108,7 +108,7 @@ def test_kitti_first_frames_ba_against_ground_truth():
     from eifslam.system.slam import Slam
 
     seq = open_source(DATASETS / "kitti-seq1")
-    slam = Slam(seq.camera, SlamConfig().replace(system={"mode": "ba"}))
+    slam = Slam(seq.camera, SlamConfig().replace(smoothing={"mode": "ba"}))
     for k in range(10):
         slam.track(seq.load(k), seq.frames[k].timestamp)
     fin = slam.finish()  # mode ba: bundle adjustment, as `eifslam run --mode ba` does

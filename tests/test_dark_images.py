@@ -101,7 +101,7 @@ def test_sparse_ring_of_a_dark_object_is_placed(tmp_path):
     (dst / "groundtruth.tum").write_text("\n".join(lines) + "\n")
     (dst / "times.txt").write_text("".join(f"{n:.6f}\n" for n in range(len(keep))))
 
-    config = SlamConfig().replace(system={"mode": "filter"})
+    config = SlamConfig().replace(smoothing={"mode": "filter"})
     seq = open_source(dst)
     run = run_sequence(seq, config, quiet=True)
     rep = write_outputs(run.slam, tmp_path / "out", run.seconds, seq.ground_truth(), html=False)

@@ -16,14 +16,17 @@ from eifslam.sim.synthetic import corridor_scene, orbit_scene
 from eifslam.system.slam import Slam
 
 
-def run(scene_fn, seed, noise=True, frames=12, system=None, **kw):
+def run(scene_fn, seed, noise=True, frames=12, sections=None, **kw):
     """Simulate and run the system (Algorithm 1 of :class:`Slam`) on the measurements,
-    every scene point in the map; ``kw`` are filter settings over the system's defaults.
+    every scene point in the map; ``kw`` are ``experimental`` settings and ``sections``
+    other sections' over the system's defaults.
     Returns the scene and the filter at its complete estimate."""
     rng = np.random.default_rng(seed)
     sc = scene_fn(frames, rng)
     fe = SyntheticFrontEnd(sc, seed, noise=noise, map_fraction=1.0)
-    slam = Slam(sc.camera, fe.slam_config(filter=kw, system=system or {}), frontend=fe)
+    sections = dict(sections or {})
+    sections["experimental"] = {**sections.get("experimental", {}), **kw}
+    slam = Slam(sc.camera, fe.slam_config(**sections), frontend=fe)
     for k in range(frames):
         slam.track(k)
     slam.filter.complete_estimate()
@@ -115,8 +118,8 @@ def nees_runs():
     runs, frames = 50, 10
     vals: dict[str, list[float]] = {"filter": [], "smooth": []}
     for seed in range(runs):
-        sc, f = run(corridor_scene, 100 + seed, noise=True, frames=frames, gate_chi2=None,
-                    system={"min_feature_parallax_deg": 4.0, "relative_gate_chi2": None})
+        sc, f = run(corridor_scene, 100 + seed, noise=True, frames=frames, zm_gate_chi2=None, relative_gate_chi2=None,
+                    sections={"mapping": {"min_feature_parallax_deg": 4.0}})
         vals["filter"].append(pose_nees(f, sc, frames - 1))
         smooth(f)
         vals["smooth"].append(pose_nees(f, sc, frames - 1))
@@ -176,8 +179,8 @@ def test_robust_smoothing_drops_a_wrong_relative_pose():
     from eifslam.estimation.measurements import RelativePose
 
     def solve(corrupt: bool, robust: bool):
-        sc, f = run(corridor_scene, 7, noise=True, gate_chi2=None,
-                    system={"min_feature_parallax_deg": 3.0, "relative_gate_chi2": None})
+        sc, f = run(corridor_scene, 7, noise=True, zm_gate_chi2=None, relative_gate_chi2=None,
+                    sections={"mapping": {"min_feature_parallax_deg": 3.0}})
         if corrupt:
             rp = next(r for r in f.store.relative if (r.i, r.j) == (5, 6))
             t = quat_to_rotmat(quat_exp(np.array([0.0, np.radians(40.0), 0.0]))) @ rp.t_ij
@@ -205,8 +208,8 @@ def test_smoothing_never_returns_a_higher_common_cost_than_the_filter():
     from eifslam.geometry.rotations import quat_exp, quat_to_rotmat
     from eifslam.estimation.measurements import RelativePose
 
-    sc, f = run(corridor_scene, 7, noise=True, gate_chi2=None,
-                system={"min_feature_parallax_deg": 3.0, "relative_gate_chi2": None})
+    sc, f = run(corridor_scene, 7, noise=True, zm_gate_chi2=None, relative_gate_chi2=None,
+                sections={"mapping": {"min_feature_parallax_deg": 3.0}})
     rp = next(r for r in f.store.relative if (r.i, r.j) == (5, 6))
     t = quat_to_rotmat(quat_exp(np.array([0.0, np.radians(40.0), 0.0]))) @ rp.t_ij
     f.fuse_relative([RelativePose(rp.i, rp.j, rp.q_ij, t, rp.cov)])

@@ -167,5 +167,5 @@ def test_first_estimates_option_from_a_configuration_file(tmp_path, text, mode):
     from eifslam.cli.config import read_config
 
     path = tmp_path / "c.yaml"
-    path.write_text(f"filter:\n  first_estimate_jacobians: {text}\n")
+    path.write_text(f"experimental:\n  first_estimate_jacobians: {text}\n")
     assert read_config(path).filter.first_estimate_jacobians == mode

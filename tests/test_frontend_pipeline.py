@@ -18,7 +18,7 @@ DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 CAM = PinholeCamera(500.0, 500.0, 319.5, 239.5, 640, 480)
 # the front end these tests were measured with (the defaults before issue 11 made the
 # system's the defaults): 1000 features, 2 SIFT layers, previous frame only.
-SMALL = FrontEndConfig(max_features=1000, sift_octave_layers=2, match_window=1, map_fraction=0.3)
+SMALL = FrontEndConfig(max_features=1000, match_window=1, map_fraction=0.3)
 
 
 def _texture(rng: np.random.Generator, w: int = 1400, h: int = 1100) -> np.ndarray:
@@ -52,8 +52,8 @@ def test_config_rejects_bad_values_naming_the_key():
         FrontEndConfig(map_fraction=1.5)
     with pytest.raises(ConfigError, match="sigma_px"):
         FrontEndConfig(sigma_px=0.0)
-    with pytest.raises(ConfigError, match="min_inliers"):
-        FrontEndConfig(min_inliers=2)
+    with pytest.raises(ConfigError, match="frontend.match_window"):
+        FrontEndConfig(match_window=0)
     with pytest.raises(ConfigError, match="bogus"):
         FrontEndConfig.from_dict({"bogus": 1})
     assert FrontEndConfig.from_dict({"detector": "orb"}).detector == "orb"

@@ -246,7 +246,7 @@ def test_too_few_correspondences_is_a_value():
     assert not empty.ok and empty.reason == Reason.TOO_FEW_COMMON
     rng = np.random.default_rng(42)
     noise = rng.uniform([0, 0], [640, 480], (2, 60, 2))  # unrelated points
-    res = estimate_relative_pose(noise[0], noise[1], s.camera, FrontEndConfig(ransac_threshold_px=0.5))
+    res = estimate_relative_pose(noise[0], noise[1], s.camera, FrontEndConfig())
     assert not res.ok and res.reason in (Reason.TOO_FEW_INLIERS, Reason.ESSENTIAL_FAILED)
 
 

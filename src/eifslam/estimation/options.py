@@ -76,7 +76,7 @@ class FirstEstimates(Choice):
 
 class NoiseEstimate(Choice):
     """How robust smoothing sets its ``Zm`` gate from the residuals
-    (``SystemConfig.smoothing_noise_estimate``; :mod:`eifslam.estimation.noise`).
+    (``SlamConfig.experimental.noise_estimate``; :mod:`eifslam.estimation.noise`).
 
     ``OFF``: at the stated ``sigma_px``; ``GLOBAL``: scaled by one noise ratio from every
     ``Zm``; ``TRACK_LENGTH``: by one ratio per group of track lengths (2; 3-4; 5-8; ...).

@@ -255,15 +255,7 @@ def detect_features(
     img = check_image(image, camera)
     gray, rgb = _gray_and_rgb(img, config.color_order)
     gray = normalise_gain(gray)
-    s = float(config.detect_scale)
-    if s < 1.0:
-        small = cv2.resize(gray, (max(1, round(gray.shape[1] * s)), max(1, round(gray.shape[0] * s))),
-                           interpolation=cv2.INTER_AREA)
-        sx, sy = small.shape[1] / gray.shape[1], small.shape[0] / gray.shape[0]
-        kps, desc = detector.detectAndCompute(small, None)
-    else:
-        sx = sy = 1.0
-        kps, desc = detector.detectAndCompute(gray, None)
+    kps, desc = detector.detectAndCompute(gray, None)
     if desc is None or len(kps) == 0:
         d = {"orb": 32, "akaze": 61}.get(str(config.detector), 128)
         dtype = np.uint8 if config.detector in ("orb", "akaze") else np.float32
@@ -274,9 +266,6 @@ def detect_features(
         )
     uv_raw = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
     size = np.array([k.size for k in kps], np.float64)
-    if s < 1.0:  # back to full-resolution pixels (pixel centres: x = (x' + 0.5) / s - 0.5)
-        uv_raw = (uv_raw + 0.5) / np.array([sx, sy]) - 0.5
-        size = size / np.sqrt(sx * sy)
     response = np.array([k.response for k in kps], np.float64)
     if len(kps) > config.max_features:  # AKAZE has no cap of its own
         keep = np.argsort(-response, kind="stable")[: config.max_features]

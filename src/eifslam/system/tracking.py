@@ -102,7 +102,7 @@ class Tracker:
         self.filter = backend
         self.mapper = mapper
         self.rejected_relative: list = []
-        self._last_step = config.system.scale_distance
+        self._last_step = config.tracking.scale_distance
 
     # -- sessions -----------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -135,15 +135,15 @@ class Tracker:
         last : RelativePoseResult or None
             The last one tried (its ``reason`` says why tracking failed).
         """
-        sysc = self.config.system
+        cfg = self.config
         known = self.nearest_known(k)
-        n = sysc.reference_candidates
+        n = cfg.tracking.reference_candidates
         if relocalise:
-            older = known[n: n + sysc.relocalise_candidates]
+            older = known[n: n + cfg.tracking.relocalise_candidates]
             if not older:
                 return None, None
             matches = self.frontend.relocalise(k, older)
-            group = [c for c, m in sorted(matches, key=lambda cm: -cm[1]) if m > 0][: sysc.relocalise_top]
+            group = [c for c, m in sorted(matches, key=lambda cm: -cm[1]) if m > 0][: cfg.tracking.relocalise_top]
         else:
             group = known[:n] + [known[i] for i in (2 * n, 4 * n) if i < len(known)]
         last = None
@@ -152,7 +152,7 @@ class Tracker:
             timings["relative_pose"] = timings.get("relative_pose", 0.0) + r.timings_ms.get("relative_pose", 0.0)
             timings["covariance"] = timings.get("covariance", 0.0) + r.timings_ms.get("covariance", 0.0)
             last = r
-            if r.ok and self.filter.layout.n_poses == 1 and r.parallax_deg < sysc.init_parallax_deg:
+            if r.ok and self.filter.layout.n_poses == 1 and r.parallax_deg < cfg.experimental.init_parallax_deg:
                 continue  # too narrow a baseline to initialise the map on
             if r.ok:
                 return r, r
@@ -178,14 +178,14 @@ class Tracker:
         False when there are too few of them or the pose does not converge.
 
         ``guess`` (position, ``q_wc``) starts the localisation (default: the nearest
-        known pose); ``min_features`` overrides ``system.min_map_features``;
+        known pose); ``min_features`` overrides ``TrackingConfig.min_map_features``;
         ``recover=False`` fuses without the recovery (the caller recovers once)."""
         filt = self.filter
         if filt.layout.n_poses < 2 or filt.layout.n_features == 0:
             return False
         t0 = time.perf_counter()
         known, X, uv, map_cov, _ = self._known_map(k)
-        n_min = self.config.system.min_map_features if min_features is None else int(min_features)
+        n_min = self.config.tracking.min_map_features if min_features is None else int(min_features)
         if known.sum() < n_min:
             return False
         p0, q0 = filt.pose(self.nearest_known(k)[0]) if guess is None else guess
@@ -203,17 +203,17 @@ class Tracker:
         """Algorithm 1 for frame *k* related to a known pose by ``rpr``: initial guesses,
         augment with zeros, fuse ``ZR``/``ZT`` (unless gated out) and ``Zm``, recover
         (unless ``recover`` is False: the caller recovers once)."""
-        filt, sysc = self.filter, self.config.system
+        filt, cfg = self.filter, self.config
         rp = rpr.measurement
         t0 = time.perf_counter()
         known, Xk, uvk, map_cov, _ = self._known_map(k)
         p_i, q_i = filt.pose(rp.i)
         first_step = filt.layout.n_poses == 1
         init = pose_from_relative(p_i, q_i, rp, self.camera, Xk, uvk,
-                                  default_step=sysc.scale_distance if first_step else self._last_step)
+                                  default_step=cfg.tracking.scale_distance if first_step else self._last_step)
         p_k, q_k, step = init
         use_relative, refined = True, False
-        if known.sum() >= sysc.min_map_features:  # a better linearisation point: refine on the known map
+        if known.sum() >= cfg.tracking.min_map_features:  # a better linearisation point: refine on the known map
             sol = localise_pose(self.camera, p_k, q_k, Xk, uvk, X_cov=map_cov)
             if sol is None:  # the map does not converge from the relative pose's guess: from the
                 # nearest known pose, as a frame without a relative pose (ORB kitti-07: a guess
@@ -221,15 +221,15 @@ class Tracker:
                 p0, q0 = filt.pose(self.nearest_known(k)[0])
                 sol = localise_pose(self.camera, p0, q0, Xk, uvk, X_cov=map_cov)
             frac = sol[2].mean() if sol is not None else 0.0
-            if sol is not None and agrees(p_i, p_k, q_k, sol, max_rot_deg=sysc.agree_rotation_deg,
-                                          max_dir_deg=sysc.agree_direction_deg):
-                p_k, q_k, refined = sol[0], sol[1], frac >= sysc.map_inlier_fraction
-            elif sol is not None and frac > sysc.contradiction_ratio * inlier_fraction(
-                    self.camera, p_k, q_k, Xk, uvk, sysc.inlier_radius_px):
+            if sol is not None and agrees(p_i, p_k, q_k, sol, max_rot_deg=cfg.tracking.agree_rotation_deg,
+                                          max_dir_deg=cfg.tracking.agree_direction_deg):
+                p_k, q_k, refined = sol[0], sol[1], frac >= cfg.tracking.map_inlier_fraction
+            elif sol is not None and frac > cfg.tracking.contradiction_ratio * inlier_fraction(
+                    self.camera, p_k, q_k, Xk, uvk, cfg.tracking.inlier_radius_px):
                 # the map contradicts this relative pose: trust the map, drop the ZR/ZT
                 p_k, q_k, use_relative = sol[0], sol[1], False
                 self.rejected_relative.append(rp)
-            elif sol is not None and frac >= sysc.map_inlier_fraction:
+            elif sol is not None and frac >= cfg.tracking.map_inlier_fraction:
                 # the map fits well where the relative pose points elsewhere (on a short
                 # baseline both guesses fit the map): linearise at the map's pose and let
                 # the chi-square gate below decide on the ZR/ZT
@@ -237,11 +237,11 @@ class Tracker:
         self.mapper.reobserve(k, p_k, q_k)
         filt.add_pose(k, p_k, q_k)
         if first_step:
-            filt.set_scale(rp.i, k, sysc.scale_distance)
+            filt.set_scale(rp.i, k, cfg.tracking.scale_distance)
         self._last_step = step if step > 0 else self._last_step
-        if use_relative and refined and sysc.relative_gate_chi2 is not None:
+        if use_relative and refined and cfg.experimental.relative_gate_chi2 is not None:
             # ZR/ZT against the pose the map supports: an inconsistent one is not fused
-            if relative_gate_statistic(filt, rp) > sysc.relative_gate_chi2:
+            if relative_gate_statistic(filt, rp) > cfg.experimental.relative_gate_chi2:
                 use_relative = False
                 self.rejected_relative.append(rp)
         if use_relative:
@@ -290,8 +290,8 @@ class Tracker:
     def place_wide(self, j: int, wide, timings: dict[str, float]) -> tuple[bool, int | None]:
         """Localise an earlier frame *j* that has no pose from wide-baseline matches to a
         known frame (:class:`~eifslam.frontend.wide.WideMatch`): on the known map features
-        their joined tracks made visible (at least ``system.min_map_features`` from the
-        nearest known pose, else ``system.wide_baseline_min_map_features`` from the
+        their joined tracks made visible (at least ``TrackingConfig.min_map_features`` from the
+        nearest known pose, else ``ExperimentalConfig.wide_baseline_min_map_features`` from the
         relative pose of the matches). That relative pose is never fused (with a narrow
         field of view it is poorly conditioned: 7 degrees off on templering). The step length is left as it was, as
         in :meth:`place_late`. Raises :class:`~eifslam.errors.EstimatorError` as
@@ -321,7 +321,7 @@ class Tracker:
             p_i, q_i = self.filter.pose(wide.reference)
             p_k, q_k, _ = pose_from_relative(p_i, q_i, rpr.measurement, self.camera, Xk, uvk,
                                              default_step=self._last_step)
-            n_min = self.config.system.wide_baseline_min_map_features
+            n_min = self.config.experimental.wide_baseline_min_map_features
             return self.localise_from_map(j, timings, guess=(p_k, q_k), min_features=n_min), None
         finally:
             self._last_step = last_step
