@@ -32,7 +32,7 @@ from .filter_session import FilterSessionMixin
 from .incremental import IncrementalRecovery, TrackedInformationStore
 from .information import InformationStore
 from .measurements import FeatureObservations, MeasurementStore, PriorStore, RelativePose
-from .options import FilterConfig, FirstEstimates, Recovery
+from .options import WINDOW, FilterConfig, FirstEstimates, Recovery
 from .recovery import SchurFactor, factorize
 from .relinearisation import OnlineRelinearisation
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout, pose_tangent_covariance, read_features, read_pose, read_poses  # noqa: F401
@@ -59,12 +59,12 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         solve; :meth:`complete_estimate` back-substitutes the marginalised states.
     window : int
         Incremental recovery only: steps without a measurement before a state leaves the
-        active window.
+        active window (:data:`~eifslam.estimation.options.WINDOW` by default).
     """
 
     def __init__(
         self, camera: PinholeCamera, config: FilterConfig | None = None,
-        recovery: Recovery | str = Recovery.INCREMENTAL, window: int = 2,
+        recovery: Recovery | str = Recovery.INCREMENTAL, window: int = WINDOW,
     ) -> None:
         self.camera = camera
         self.config = config or FilterConfig()

@@ -33,6 +33,12 @@ class Choice(str, Enum):
             raise ConfigError(f"{what} must be one of {allowed}, got {value!r}") from None
 
 
+#: Steps without a measurement before a state leaves the incremental recovery's active
+#: window: more than the front end's matching window, so that a track that reappears
+#: rarely touches a marginalised feature.
+WINDOW = 5
+
+
 class Recovery(Choice):
     """Per-frame state recovery of :class:`~eifslam.estimation.filter.InformationFilter`.
 
@@ -179,4 +185,4 @@ class FilterConfig:
             raise ConfigError(f"filter.relinearise_budget must be an integer >= 1, got {b!r}")
 
 
-__all__ = ["FilterConfig", "FirstEstimates", "NoiseEstimate", "Recovery"]
+__all__ = ["FilterConfig", "FirstEstimates", "NoiseEstimate", "Recovery", "WINDOW"]

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Mapping
 
 from ..errors import ConfigError
-from ..estimation.options import Choice, FilterConfig, FirstEstimates, NoiseEstimate, Recovery
+from ..estimation.options import WINDOW, Choice, FilterConfig, FirstEstimates, NoiseEstimate, Recovery
 from ..frontend import FrontEndConfig
 from ..settings import Flag, Int, OneOf, Real, build_section, check_section, plain, setting
 
@@ -174,7 +174,7 @@ class ExperimentalConfig:
     recovery: Recovery = setting(Recovery.INCREMENTAL, "per-frame state recovery: incremental (exact over an "
                                                        "active window, paper III-G) or full (sparse solve)",
                                  OneOf(Recovery))
-    window: int = setting(5, "incremental recovery: frames without a measurement before a state leaves the "
+    window: int = setting(WINDOW, "incremental recovery: frames without a measurement before a state leaves the "
                              "active window", Int(1))
     first_estimate_jacobians: FirstEstimates = setting(
         FirstEstimates.OFF, "Jacobians of new measurements at first estimates: off, features or all",
