@@ -437,7 +437,7 @@ def run_one(source: Path, dataset: str, mode: str, detector: str, out_dir: Path,
         from eifslam.io import open_source
 
         config = SlamConfig().replace(frontend={"detector": detector, **dict(frontend or {})},
-                                      system={"mode": mode})
+                                      smoothing={"mode": mode})
         seq = open_source(source)
         rep = (runner or run_to_folder)(seq, config, out_dir, max_frames=max_frames, html=False, quiet=quiet)
         if scene is not None and rep.get("frames_tracked", 0) >= 3:

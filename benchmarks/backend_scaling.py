@@ -33,7 +33,7 @@ against Gauss-Newton on the same stored measurements run to convergence (held to
 that optimum against draws of its posterior (``_posterior``). The online
 relinearisation (0.05 sigma and 1000 measurements a frame by default) is this benchmark's
 choice; the system's own default is no online relinearisation. The window is the
-system's (``system.window``) unless ``--window`` says otherwise.
+system's (``experimental.window``) unless ``--window`` says otherwise.
 
 and ``OUT/backend_scaling.png``. ``nnz`` (non-zeros of ``I``) is counted incrementally from
 the block pairs each fusion touches, outside the timed region, and checked once against
@@ -262,8 +262,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--min-dim", type=int, default=100_000, help="run until this many state entries")
     ap.add_argument("--full-max-dim", type=int, default=25_000, help="full solve each frame up to this size")
     ap.add_argument("--full-every", type=int, default=150, help="time a full solve every N frames (0: never)")
-    ap.add_argument("--window", type=int, default=SlamConfig().system.window,
-                    help="steps before a state leaves the active window (default: the system's, system.window)")
+    ap.add_argument("--window", type=int, default=SlamConfig().experimental.window,
+                    help="steps before a state leaves the active window (default: the system's, experimental.window)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--relinearise-threshold", type=float, default=0.05,
                     help="online relinearisation threshold (sigma) of the incremental run; 0: off")

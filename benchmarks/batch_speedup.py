@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         raise SystemExit(f"no data sets under {args.data}")
     log(f"data sets: {sets}")
     fe = {} if args.features is None else {"detector": args.features}
-    config = SlamConfig().replace(system={"mode": args.mode}, frontend=fe)
+    config = SlamConfig().replace(smoothing={"mode": args.mode}, frontend=fe)
     sources = [args.data / name for name, _ in sets]
     rounds = []
     for r in range(args.repeat):

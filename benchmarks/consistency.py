@@ -3,7 +3,7 @@
 Each run is a synthetic corridor (:func:`eifslam.sim.synthetic.corridor_scene`, its own
 scene and noise seed) measured by :class:`eifslam.sim.frontend.SyntheticFrontEnd` and run
 through the system (:class:`eifslam.system.slam.Slam`) at its default settings (only
-``system.sigma_px`` and ``system.scale_distance`` come from the simulation, so that the
+``frontend.sigma_px`` and ``tracking.scale_distance`` come from the simulation, so that the
 estimate is in the truth's gauge: first pose the identity, distance between the first two
 poses the true one). After every ``--every``-th frame the normalised estimation error
 squared (NEES) of the latest pose, 6 DOF ``[p, dtheta]``, is taken from the filter's
@@ -12,7 +12,7 @@ estimate and covariance; at the same frames a copy of the system is smoothed
 
 The mean NEES over ``R`` runs is consistent when it lies inside the 95% interval of
 ``chi2(6 R) / R``. ``--set SECTION.KEY=VALUE`` changes a setting, to see what it does
-to the consistency (e.g. ``--set filter.gate_chi2=none``).
+to the consistency (e.g. ``--set experimental.zm_gate_chi2=none``).
 
 Writes ``DIR/consistency.json``::
 
@@ -68,7 +68,7 @@ def interval(runs: int, dof: int = DOF, level: float = 0.95) -> tuple[float, flo
 
 
 def parse_sets(items: list[str]) -> dict[str, dict]:
-    """``["filter.gate_chi2=none", "system.min_feature_parallax_deg=4"]`` as config sections."""
+    """``["experimental.zm_gate_chi2=none", "mapping.min_feature_parallax_deg=4"]`` as config sections."""
     out: dict[str, dict] = {}
     for it in items:
         key, _, val = it.partition("=")

@@ -126,7 +126,7 @@ def run_one(source: Path, name: str, out_dir: Path, loop: bool, detector: str | 
     from eifslam.system.runner import run_sequence
 
     fe = {"detector": detector} if detector else {}
-    config = (base or SlamConfig()).replace(frontend=fe, system={"mode": "filter", "loop_closure": loop})
+    config = (base or SlamConfig()).replace(frontend=fe, smoothing={"mode": "filter"}, loops={"enabled": loop})
     t0 = time.perf_counter()
     seq = open_source(source)
     run = run_sequence(seq, config, max_frames=max_frames, quiet=True)

@@ -5,7 +5,7 @@ Usage::
     python -m benchmarks.realtime --data ../shared/datasets --out out/realtime
     python -m benchmarks.realtime --data ../shared/datasets --out out/rt --only kitti-seq1 --detectors sift
     python -m benchmarks.realtime --data ../shared/datasets --out out/rt --only 7scenes-redkitchen-a \\
-        --max-frames 150 --set sift_octave_layers=2 --smooth --tag layers2
+        --max-frames 150 --set max_features=1000 --smooth --tag feat1000
 
 For each data set under ``--data`` (the sub-folders with ``images/``; ``builtin`` is the
 rendered scene of the paper's first experiment) and each detector, SLAM runs in filter
@@ -251,7 +251,7 @@ def run_one(source: Path, dataset: str, detector: str, out_dir: Path, settings: 
         from eifslam.system.config import SlamConfig
         from eifslam.system.runner import run_sequence
 
-        config = SlamConfig().replace(frontend={"detector": detector, **dict(settings)}, system={"mode": "filter"})
+        config = SlamConfig().replace(frontend={"detector": detector, **dict(settings)}, smoothing={"mode": "filter"})
         reset_peak_rss()
         t0, c0 = time.perf_counter(), time.process_time()
         seq = open_source(source)
@@ -269,7 +269,7 @@ def run_one(source: Path, dataset: str, detector: str, out_dir: Path, settings: 
                    seconds=seconds, fps=n / seconds if seconds > 0 else None, loop_seconds=run.seconds,
                    cpu_seconds=cpu, cpu_ms_per_frame=1e3 * cpu / n if n else None,
                    camera_hz=rate, realtime_factor=(n / seconds) / rate if rate and seconds > 0 else None,
-                   prefetch=config.frontend.prefetch if prefetch is None else prefetch,
+                   prefetch=config.runtime.prefetch if prefetch is None else prefetch,
                    ate_filter=rep.get("ate_rmse"), stages=stage_stats(frames), flatness=flatness(frames),
                    stopped=run.stopped, evaluation_error=rep.get("evaluation_error"),
                    tracking_ms=percentile_stats([f["ms"]["total"] for f in frames
@@ -337,7 +337,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--detectors", default="sift,orb", help="comma-separated detectors (default sift,orb)")
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames per run")
     p.add_argument("--set", dest="settings", action="append", default=[], metavar="KEY=VALUE",
-                   help="a front-end setting (FrontEndConfig), e.g. sift_octave_layers=2; repeatable")
+                   help="a front-end setting (FrontEndConfig), e.g. max_features=1000; repeatable")
     p.add_argument("--prefetch", type=int, default=None,
                    help="frames detected ahead in a worker thread (default: the config's; 0: none)")
     p.add_argument("--smooth", action="store_true",

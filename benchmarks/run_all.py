@@ -42,7 +42,7 @@ from ._common import (
 )
 
 MODES = ("filter", "smooth", "ba")
-DETECTORS = ("sift", "orb", "akaze", "surf")
+DETECTORS = ("sift", "orb", "akaze")
 
 #: (title, row key) of the per-stage columns: median milliseconds per frame.
 STAGE_COLUMNS: tuple[tuple[str, str], ...] = (
@@ -273,7 +273,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         except ConfigError as exc:
             log(str(exc))
             return 2
-    configs = [base.replace(frontend={"detector": det}, system={"mode": mode})
+    configs = [base.replace(frontend={"detector": det}, smoothing={"mode": mode})
                for mode in args.modes for det in args.detectors]
     rows: list[dict[str, Any]] = []
     scene = None
@@ -284,7 +284,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 folder, scene = prepare_builtin(out)
             except Exception as exc:  # rendering failed: record it for every run of the scene
                 log(f"FAILED rendering the built-in scene: {type(exc).__name__}: {exc}")
-                rows += [build_row(name, c.system.mode, c.frontend.detector, None,
+                rows += [build_row(name, c.smoothing.mode, c.frontend.detector, None,
                                    error=f"rendering: {type(exc).__name__}: {exc}") for c in configs]
                 continue
         sources.append(folder)

@@ -49,7 +49,7 @@ def data(tmp_path_factory) -> Path:
 
 
 def _filter(detector: str = "sift") -> SlamConfig:
-    return SlamConfig().replace(system={"mode": "filter"}, frontend={"detector": detector})
+    return SlamConfig().replace(smoothing={"mode": "filter"}, frontend={"detector": detector})
 
 
 def test_task_list_names_are_unique(tmp_path):
@@ -127,7 +127,7 @@ def test_batch_command_on_a_local_cluster(data, tmp_path, capsys):
     assert (out / "tinyA-filter-sift" / "trajectory.tum").is_file()
     assert "| tinyA | filter | sift | done |" in (out / "results.md").read_text()
     report = json.loads((out / "tinyA-filter-sift" / "report.json").read_text())
-    assert report["command"].startswith("eifslam batch") and report["config"]["system"]["mode"] == "filter"
+    assert report["command"].startswith("eifslam batch") and report["config"]["smoothing"]["mode"] == "filter"
     assert "broken filter sift:" in capsys.readouterr().err
     # complete: skipped without starting a cluster
     assert main(["batch", str(data / "tinyA"), "--out", str(out), "--mode", "filter", "-q"]) == 0

@@ -32,8 +32,8 @@ def test_statistics_on_known_numbers():
 
 
 def test_parse_settings():
-    assert realtime.parse_settings(["sift_octave_layers=2", "detect_scale=0.5", "mutual=false", "ransac_method=usac"]) \
-        == {"sift_octave_layers": 2, "detect_scale": 0.5, "mutual": False, "ransac_method": "usac"}
+    assert realtime.parse_settings(["max_features=1000", "map_fraction=0.5", "seed=null", "color_order=rgb"]) \
+        == {"max_features": 1000, "map_fraction": 0.5, "seed": None, "color_order": "rgb"}
     with pytest.raises(ValueError):
         realtime.parse_settings(["nokey"])
 

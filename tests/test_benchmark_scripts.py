@@ -154,7 +154,7 @@ def test_run_all_smoke(tmp_path):
     out = tmp_path / "out"
     docs = tmp_path / "docs" / "results.md"
     cfg = tmp_path / "c.yaml"  # --config: every run takes these settings (mode and detector from the options)
-    cfg.write_text("system:\n  mode: smooth\n")
+    cfg.write_text("smoothing:\n  mode: smooth\n")
     r = run_module("run_all", "--data", str(data), "--out", str(out), "--modes", "filter", "--detectors", "sift",
                    "--only", "tiny", "--docs", str(docs), "--config", str(cfg))
     rows = json.loads((out / "results.json").read_text())
@@ -166,7 +166,7 @@ def test_run_all_smoke(tmp_path):
     assert row["frames_tracked"] >= 3 and row["ate_rmse"] is not None and np.isfinite(row["ate_rmse"])
     assert row["ms_total"] > 0
     rep = json.loads((out / "tiny-filter-sift" / "report.json").read_text())
-    assert rep["config"]["system"]["mode"] == "filter"
+    assert rep["config"]["smoothing"]["mode"] == "filter"
     assert not (out / "tiny-filter-sift" / "report.html").exists()
     for page in (out / "results.md", docs):
         text = page.read_text()
@@ -215,8 +215,8 @@ def test_consistency_benchmark_writes_its_json(tmp_path):
 
     lo, hi = consistency.interval(50)
     assert lo == pytest.approx(5.08, abs=0.01) and hi == pytest.approx(7.00, abs=0.01)
-    assert consistency.parse_sets(["filter.gate_chi2=none", "system.min_feature_parallax_deg=4"]) == \
-        {"filter": {"gate_chi2": None}, "system": {"min_feature_parallax_deg": 4}}
+    assert consistency.parse_sets(["experimental.zm_gate_chi2=none", "mapping.min_feature_parallax_deg=4"]) == \
+        {"experimental": {"zm_gate_chi2": None}, "mapping": {"min_feature_parallax_deg": 4}}
     r = run_module("consistency", "--out", str(tmp_path), "--runs", "2", "--frames", "6", "--every", "3")
     assert r.returncode == 0, r.stderr
     res = json.loads((tmp_path / "consistency.json").read_text())

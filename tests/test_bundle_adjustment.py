@@ -106,7 +106,7 @@ def test_kitti_first_frames_ba_against_ground_truth(shared_dataset):
     from eifslam.system.slam import Slam
 
     seq = open_source(shared_dataset("kitti-seq1"))
-    slam = Slam(seq.camera, SlamConfig().replace(system={"mode": "ba"}))
+    slam = Slam(seq.camera, SlamConfig().replace(smoothing={"mode": "ba"}))
     for k in range(10):
         slam.track(seq.load(k), seq.frames[k].timestamp)
     fin = slam.finish()  # mode ba: bundle adjustment, as `eifslam run --mode ba` does

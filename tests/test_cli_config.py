@@ -20,37 +20,51 @@ def test_printed_defaults_load_back_to_the_defaults(tmp_path, capsys):
     assert cli_main(["config"]) == 0
     text = capsys.readouterr().out
     values = yaml.safe_load(text)
-    assert set(values) == {"frontend", "filter", "system"}
-    assert values["system"]["mode"] == "smooth" and values["filter"]["gate_chi2"] == 9.21
+    assert list(values) == ["frontend", "tracking", "mapping", "keyframes", "loops", "smoothing", "runtime",
+                            "experimental"]
+    assert values["smoothing"]["mode"] == "smooth" and values["experimental"]["zm_gate_chi2"] == 9.21
     assert SlamConfig.from_dict(values) == SlamConfig()
     path = tmp_path / "defaults.yaml"
     path.write_text(text)
     assert read_config(path) == SlamConfig()
-    # every setting is there: as many keys as the three dataclasses have fields
+    # every setting is there, each after one comment line of help that ends with its default
     import dataclasses
 
     cfg = SlamConfig()
     for sec in values:
         assert set(values[sec]) == {f.name for f in dataclasses.fields(getattr(cfg, sec))}
+    lines = text.splitlines()
+    keys = [i for i, line in enumerate(lines) if line.startswith("  ") and not line.startswith("  #")]
+    assert len(keys) == sum(len(v) for v in values.values())
+    for i in keys:
+        assert lines[i - 1].startswith("  # ") and "(default " in lines[i - 1]
+    # the settings a user sees, and the few experimental ones
+    from eifslam.system.config import setting_count
+
+    total, outside = setting_count()
+    assert total <= 40 and outside <= 15
 
 
 def test_a_file_changes_what_it_names_and_is_checked(tmp_path, capsys):
     path = tmp_path / "c.yaml"
-    path.write_text("system:\n  mode: filter\n  window: 7\nfilter:\n  prior_sigma: 1e-7\nfrontend:\n  detector: orb\n")
+    path.write_text("smoothing:\n  mode: filter\nexperimental:\n  window: 7\n  relinearise_threshold: 1e-1\n"
+                    "frontend:\n  detector: orb\n")
     cfg = read_config(path)
-    assert cfg.system.mode == "filter" and cfg.system.window == 7 and cfg.filter.prior_sigma == 1e-7
+    assert cfg.smoothing.mode == "filter" and cfg.experimental.window == 7
+    assert cfg.filter.relinearise_threshold == 0.1
     assert cfg.frontend.detector == "orb" and cfg.frontend.max_features == SlamConfig().frontend.max_features
     assert read_config(tmp_path / "c.yaml") == SlamConfig.from_dict(yaml.safe_load(config_yaml(cfg)))
     assert cli_main(["config", str(path)]) == 0
-    assert yaml.safe_load(capsys.readouterr().out)["system"]["window"] == 7
+    assert yaml.safe_load(capsys.readouterr().out)["experimental"]["window"] == 7
     marker = tmp_path / "pwned"
     cases = {
         "missing.yaml": None,
-        "bad_yaml.yaml": "system: [mode: filter\n",
-        "unknown.yaml": "system:\n  nonsense: 1\n",
+        "bad_yaml.yaml": "smoothing: [mode: filter\n",
+        "unknown.yaml": "tracking:\n  nonsense: 1\n",
+        "old_section.yaml": "system:\n  mode: filter\n",
         "range.yaml": "frontend:\n  map_fraction: 1.5\n",
         "list.yaml": "- 1\n- 2\n",
-        "object.yaml": f"system: !!python/object/apply:os.system ['touch {marker}']\n",
+        "object.yaml": f"smoothing: !!python/object/apply:os.system ['touch {marker}']\n",
     }
     for name, text in cases.items():
         p = tmp_path / name
@@ -84,7 +98,7 @@ def _folder(tmp_path: Path, n: int) -> Path:
 def test_run_with_a_config_file_records_what_reproduces_it_and_guards_its_outputs(tmp_path, capsys):
     d = _folder(tmp_path, 3)
     conf = tmp_path / "c.yaml"
-    conf.write_text("system:\n  mode: filter\nfrontend:\n  max_features: 800\n")
+    conf.write_text("smoothing:\n  mode: filter\nfrontend:\n  max_features: 800\n")
     out = tmp_path / "out"
     argv = ["run", str(d), "--out", str(out), "--config", str(conf), "--seed", "5", "--map-fraction", "0.4",
             "--no-html", "-q"]
@@ -95,9 +109,9 @@ def test_run_with_a_config_file_records_what_reproduces_it_and_guards_its_output
     assert rep["eifslam_version"] == eifslam.__version__
     assert rep["command"].startswith("eifslam run ") and "--seed 5" in rep["command"]
     cfg = SlamConfig.from_dict(rep["config"])  # the full effective configuration, loadable
-    assert cfg.system.mode == "filter" and cfg.frontend.max_features == 800
+    assert cfg.smoothing.mode == "filter" and cfg.frontend.max_features == 800
     assert cfg.frontend.seed == 5 and cfg.frontend.map_fraction == 0.4  # options override the file
-    assert cfg.system.window == SlamConfig().system.window
+    assert cfg.experimental.window == SlamConfig().experimental.window
     # the outputs are not overwritten without --force
     assert cli_main(argv) == 1
     lines = capsys.readouterr().err.strip().splitlines()

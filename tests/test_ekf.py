@@ -18,7 +18,7 @@ def run(sc, seed: int, ekf: bool, **kw):
     Jacobians here (linearised alike)."""
     fe = SyntheticFrontEnd(sc, seed, map_fraction=1.0, **kw)
     # linearised alike: the EKF never relinearises, so the EIF's online relinearisation is off
-    config = fe.slam_config(filter={"first_estimate_jacobians": False, "relinearise_threshold": None})
+    config = fe.slam_config(experimental={"first_estimate_jacobians": False, "relinearise_threshold": None})
     slam = Slam(sc.camera, config, frontend=fe, backend=DenseEKF(sc.camera, config.filter) if ekf else None)
     for k in range(len(sc.positions)):
         slam.track(k)

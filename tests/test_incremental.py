@@ -307,8 +307,8 @@ def test_indefinite_window_is_solved_without_a_rebuild(monkeypatch):
 
 
 def test_indefinite_poses_to_eliminate_fall_back_to_the_full_solve(monkeypatch):
-    """When the poses to eliminate have numerically indefinite information (kitti-07 with
-    ``gate_feature_uncertainty`` stopped the run with a LinAlgError there), the frame is
+    """When the poses to eliminate have numerically indefinite information (a LinAlgError
+    in the elimination), the frame is
     solved by the full sparse solve and the window rebuilt: the run goes on, exact."""
     import eifslam.estimation.window as winmod
 

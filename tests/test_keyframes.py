@@ -75,13 +75,16 @@ def aligned_errors(P: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 
 def run(keyframes: bool, frames: int = 40, seed: int = 2):
-    """A slow walk down the corridor (5 cm per frame, 10 frames per second)."""
+    """A slow walk down the corridor (5 cm per frame, 10 frames per second); without
+    ``keyframes`` every frame is one (the longest interval between keyframes is shorter
+    than the frames')."""
     sc = corridor_scene(frames, np.random.default_rng(seed), step=0.05, points_per_metre=30.0)
     fe = SyntheticFrontEnd(sc, seed, map_fraction=0.6)
     # the whole triangulation parallax between keyframes (2 deg), so that the walk has
     # frames between keyframes to test (the default, a quarter of it, keeps more)
-    slam = Slam(sc.camera, fe.slam_config(system={"mode": "filter", "keyframes": keyframes,
-                                                  "keyframe_parallax_deg": 2.0}), frontend=fe)
+    every = {} if keyframes else {"max_interval_s": 0.05}
+    slam = Slam(sc.camera, fe.slam_config(smoothing={"mode": "filter"}, experimental={"keyframe_parallax_deg": 2.0},
+                                          keyframes=every), frontend=fe)
     for k in range(frames):
         slam.track(k, 0.1 * k)
     slam.finish()
@@ -140,11 +143,11 @@ def test_keyframe_rules():
 
 
 def test_keyframe_settings_are_checked():
-    for bad in ({"keyframe_min_tracked": 0.0}, {"keyframe_min_tracked": 1.5}, {"keyframe_parallax_deg": -1.0},
-                {"keyframe_max_interval_s": 0.0}, {"keyframes": "yes"}):
+    for bad in ({"experimental": {"keyframe_parallax_deg": -1.0}}, {"keyframes": {"max_interval_s": 0.0}},
+                {"keyframes": {"min_tracked": 0.5}}):
         with pytest.raises(ConfigError):
-            SlamConfig.from_dict({"system": bad})
-    assert SlamConfig().system.keyframe_parallax == SlamConfig().system.min_feature_parallax_deg / 4
+            SlamConfig.from_dict(bad)
+    assert SlamConfig().keyframe_parallax == SlamConfig().mapping.min_feature_parallax_deg / 4
 
 
 def test_frames_between_keyframes_follow_their_keyframe_when_the_map_moves():
@@ -193,8 +196,7 @@ def test_smoothing_a_finished_filter_run_moves_the_frames_between_keyframes_too(
     # a smooth-mode run of the same frames: the same trajectory for every frame
     sc2 = corridor_scene(30, np.random.default_rng(2), step=0.05, points_per_metre=30.0)
     fe = SyntheticFrontEnd(sc2, 2, map_fraction=0.6)
-    ref = Slam(sc2.camera, fe.slam_config(system={"mode": "smooth", "keyframes": True,
-                                                  "keyframe_parallax_deg": 2.0}), frontend=fe)
+    ref = Slam(sc2.camera, fe.slam_config(smoothing={"mode": "smooth"}, experimental={"keyframe_parallax_deg": 2.0}), frontend=fe)
     for k in range(30):
         ref.track(k, 0.1 * k)
     ref.finish()

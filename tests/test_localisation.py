@@ -113,7 +113,7 @@ def test_a_relative_pose_the_map_cannot_start_from_is_not_fused_where_it_points(
     frames, bad = 10, 8
     sc = corridor_scene(frames, np.random.default_rng(3))
     fe = SyntheticFrontEnd(sc, 3, sigma_px=0.5)
-    slam = Slam(sc.camera, fe.slam_config(system={"mode": "filter", "keyframes": False}), frontend=fe)
+    slam = Slam(sc.camera, fe.slam_config(smoothing={"mode": "filter"}, keyframes={"max_interval_s": 0.5}), frontend=fe)
     honest = fe.relative_pose
 
     def turned(i: int, j: int):

@@ -142,8 +142,7 @@ def _laps(second: int):
 
     scene = make_scene(n_frames=54, width=320, height=240)
     idx = list(range(0, 54, 3)) + list(range(0, second, 3))
-    cfg = SlamConfig.from_dict({"system": {"reobserve_radius_px": 0.0, "mode": "filter", "loop_closure": True,
-                                           "loop_train_frames": 12, "loop_learn_lag": 5}})
+    cfg = SlamConfig.from_dict({"experimental": {"reobserve_radius_px": 0.0, "loop_train_frames": 12, "loop_learn_lag": 5}, "smoothing": {"mode": "filter"}, "loops": {"enabled": True}})
     slam = Slam(scene.camera, cfg)
     for n, k in enumerate(idx):
         slam.track(render_frame(scene, k), float(n))
@@ -166,7 +165,7 @@ def test_the_second_lap_closes_the_loop_with_the_right_frames(two_laps):
         assert c.frame >= lap > c.matched_frame  # nothing in the first lap: no revisit there
         gap = abs(idx[c.frame] - idx[c.matched_frame]) % 54
         assert min(gap, 54 - gap) <= 6  # the two frames see the same part of the table
-        assert c.inliers >= c.required >= slam.config.system.loop_min_inliers and c.fused == c.inliers
+        assert c.inliers >= c.required >= slam.config.loops.min_inliers and c.fused == c.inliers
     # after the loop the second lap lies on the first: the pose at the revisit agrees with
     # the pose of the same scene frame in the first lap
     c = loops[0]
@@ -184,10 +183,10 @@ def test_report_lists_loops_and_the_option_turns_loop_closure_off(tmp_path):
         out = tmp_path / f"out{len(flag)}{on}"
         assert cli_main(["run", str(d), "--out", str(out), "--no-html", "-q", *flag]) == 0
         rep = json.loads((out / "report.json").read_text())
-        assert rep["loop_closures"] == [] and rep["config"]["system"]["loop_closure"] is on
+        assert rep["loop_closures"] == [] and rep["config"]["loops"]["enabled"] is on
     from eifslam.sim.scene import make_scene
 
-    assert not Slam(make_scene().camera, SlamConfig().replace(system={"loop_closure": False})).loops.enabled
+    assert not Slam(make_scene().camera, SlamConfig().replace(loops={"enabled": False})).loops.enabled
 
 
 def test_the_loop_closer_state_survives_a_session_round_trip(two_laps):
@@ -286,7 +285,7 @@ def test_a_place_refused_on_its_map_waits_for_new_consistent_queries(monkeypatch
     monkeypatch.setattr(LoopCloser, "_verify_and_fuse", refuse)
     monkeypatch.setattr(LoopCloser, "process", spy)
     slam = _laps(33)[2]
-    need = slam.config.system.loop_consistency
+    need = slam.config.loops.consistency
     assert len(tried) >= 2 and len(counts) == len(tried)
     gaps = [b[0] - a[0] for a, b in zip(tried, tried[1:]) if a[1] <= b[2] and b[1] <= a[2]]
     assert gaps  # overlapping places were tried again
@@ -341,7 +340,7 @@ def test_a_few_long_tracks_do_not_join_two_places():
 
     config = SlamConfig()
     lc = LoopCloser(make_scene_camera(), config, SimpleNamespace(), None, None)
-    m = config.system.loop_min_inliers
+    m = config.loops.min_inliers
     covis = {498: 300, 470: m, 469: m - 1, 3: 2, 0: 1}
     assert lc._joined(covis, set()) == {498, 470}
     assert lc._joined(covis, {5}) == {498, 470, 5}

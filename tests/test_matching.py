@@ -37,11 +37,11 @@ def _recall(i1, i2, truth):
     return np.mean(truth[i1] == i2) if len(i1) else 0.0, np.sum(truth[i1] == i2) / np.sum(truth >= 0)
 
 
-@pytest.mark.parametrize("binary, binary_index", [(False, "bruteforce"), (True, "bruteforce"), (True, "lsh")])
-def test_prebuilt_indices_give_the_plain_matches(binary, binary_index):
+@pytest.mark.parametrize("binary", [False, True])
+def test_prebuilt_indices_give_the_plain_matches(binary):
     rng = np.random.default_rng(4)
     d1, d2, truth = _pair(rng, binary=binary)
-    m = DescriptorMatcher(0.8, True, binary_index=binary_index)
+    m = DescriptorMatcher(0.8, True)
     a1, a2 = m.match(d1, d2)
     b1, b2 = m.match(d1, d2, index1=m.index(d1), index2=m.index(d2))
     for i1, i2 in ((a1, a2), (b1, b2)):
@@ -99,14 +99,13 @@ def test_binary_search_is_the_brute_force_matcher():
     assert (few[:, 1] == -1).all() and np.isinf(fd[:, 1]).all() and (few[:, 0] == 0).all()
 
 
-@pytest.mark.parametrize("binary", [False, True])
-def test_a_seeded_index_is_the_same_whenever_it_is_built(binary):
+def test_a_seeded_index_is_the_same_whenever_it_is_built():
     rng = np.random.default_rng(7)
-    d1, d2, _ = _pair(rng, n=2000, shared=1000, noise=0.3, binary=binary)
+    d1, d2, _ = _pair(rng, n=2000, shared=1000, noise=0.3)
     out = []
     for seed in (3, 3, 4):
         cv2.setRNGSeed(seed)
-        index = DescriptorIndex(d2, trees=4, checks=8, binary="lsh")  # few checks: the trees matter
+        index = DescriptorIndex(d2, trees=4, checks=8)  # few checks: the trees matter
         assert index.prebuilt
         index.build()
         out.append(index.knn(d1, 2)[0])
@@ -114,11 +113,3 @@ def test_a_seeded_index_is_the_same_whenever_it_is_built(binary):
     assert not np.array_equal(out[0], out[2])  # (the trees do depend on the generator)
 
 
-def test_bad_binary_index_is_refused():
-    from eifslam.errors import ConfigError
-    from eifslam.frontend.config import FrontEndConfig
-
-    with pytest.raises(ConfigError, match="binary_index"):
-        FrontEndConfig(binary_index="hash")
-    with pytest.raises(ValueError, match="binary index"):
-        DescriptorIndex(np.zeros((3, 32), np.uint8), binary="hash")

@@ -22,7 +22,7 @@ def _run(true_px: float, stated_px: float, seed: int = 3, frames: int = 12):
     rng = np.random.default_rng(seed)
     sc = corridor_scene(frames, rng)
     fe = SyntheticFrontEnd(sc, seed, sigma_px=true_px, map_fraction=1.0)
-    cfg = fe.slam_config(system={"sigma_px": stated_px, "min_feature_parallax_deg": 3.0})
+    cfg = fe.slam_config(frontend={"sigma_px": stated_px}, mapping={"min_feature_parallax_deg": 3.0})
     slam = Slam(sc.camera, cfg, frontend=fe)
     for k in range(frames):
         slam.track(k)
@@ -177,17 +177,17 @@ def test_feature_gate_lookup():
 def test_the_option_reads_old_bools_and_its_names(given, want):
     from eifslam.system.config import SlamConfig
 
-    cfg = SlamConfig.from_dict({"system": {"smoothing_noise_estimate": given}})
-    assert str(cfg.system.smoothing_noise_estimate) == want
-    assert SlamConfig.from_dict(cfg.to_dict()).system.smoothing_noise_estimate == cfg.system.smoothing_noise_estimate
+    cfg = SlamConfig.from_dict({"experimental": {"noise_estimate": given}})
+    assert str(cfg.experimental.noise_estimate) == want
+    assert SlamConfig.from_dict(cfg.to_dict()).experimental.noise_estimate == cfg.experimental.noise_estimate
 
 
 def test_a_bad_value_is_refused():
     from eifslam.errors import ConfigError
     from eifslam.system.config import SlamConfig
 
-    with pytest.raises(ConfigError, match="smoothing_noise_estimate must be one of off, global, track_length"):
-        SlamConfig.from_dict({"system": {"smoothing_noise_estimate": "per_octave"}})
+    with pytest.raises(ConfigError, match="experimental.noise_estimate must be one of off, global, track_length"):
+        SlamConfig.from_dict({"experimental": {"noise_estimate": "per_octave"}})
 
 
 def test_small_groups_join_their_neighbours():

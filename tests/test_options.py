@@ -6,18 +6,13 @@ import numpy as np
 import pytest
 
 from eifslam.errors import ConfigError, EstimatorError
-from eifslam.estimation.filter import FilterConfig, InformationFilter
-from eifslam.estimation.options import Recovery, ZtForm
+from eifslam.estimation.filter import InformationFilter
+from eifslam.estimation.options import Recovery
 from eifslam.estimation.state import StateKey, StateKind, StateLayout
 from eifslam.geometry.camera import PinholeCamera
 
 
-def test_zt_form_and_recovery_are_string_enums():
-    cfg = FilterConfig(zt_form="bearing")
-    assert cfg.zt_form is ZtForm.BEARING and cfg.zt_form == "bearing" and str(cfg.zt_form) == "bearing"
-    assert FilterConfig().zt_form == "auto"
-    with pytest.raises(ConfigError):
-        FilterConfig(zt_form="sideways")
+def test_recovery_is_a_string_enum():
     cam = PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)
     f = InformationFilter(cam, recovery="full")
     assert f.recovery is Recovery.FULL and f.recovery == "full" and f.incremental is None

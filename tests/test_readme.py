@@ -58,6 +58,6 @@ def test_import_eifslam_gives_the_entry_points_without_opencv():
     code = ("import sys, eifslam; assert 'cv2' not in sys.modules, 'cv2 imported'; "
             "from eifslam import Slam, SlamConfig, load_camera, open_source; "
             "assert Slam.__name__ == 'Slam' and callable(load_camera) and callable(open_source); "
-            "assert SlamConfig().system.mode == 'smooth'")
+            "assert SlamConfig().smoothing.mode == 'smooth'")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr[-500:]

@@ -168,7 +168,7 @@ def test_pipelined_run_is_the_sequential_run_on_the_rendered_scene(scene_frames)
     assert all("wait" in r.timings_ms and "detect" in r.timings_ms for r in pipe_run.slam.results)
     assert all("load" in r.timings_ms for r in seq_run.slam.results)
     # the default is pipelined, and the default run is the same run again
-    assert cfg.frontend.prefetch == 2
+    assert cfg.runtime.prefetch == 2
     _same_runs(seq_run, run_sequence(scene_frames, cfg, quiet=True))
 
 
@@ -267,40 +267,16 @@ def test_prefetcher_hands_on_worker_errors():
 
 
 # -- cheaper-detection settings ----------------------------------------------------------
-def test_new_settings_are_validated():
-    for bad in (dict(prefetch=-1), dict(detect_scale=0.0), dict(detect_scale=1.5), dict(flann_checks=0),
-                dict(flann_trees=0), dict(sift_contrast_threshold=0.0), dict(prefetch=1.5)):
-        with pytest.raises(ConfigError, match=next(iter(bad))):
-            FrontEndConfig(**bad)
-    c = FrontEndConfig(prefetch=0, detect_scale=0.5, flann_checks=16, flann_trees=2, sift_contrast_threshold=0.03)
-    assert c.prefetch == 0 and c.detect_scale == 0.5
-
-
-def test_detect_scale_gives_full_resolution_pixels():
-    """Blobs at known places are found where they are (within a pixel) when detecting on
-    a half-size image, and the keypoint scale is in full-resolution pixels."""
-    h, w = 480, 640
-    img = np.full((h, w), 40, np.uint8)
-    centres = [(100.0, 120.0), (320.0, 240.0), (500.0, 350.0), (200.0, 400.0)]
-    for x, y in centres:
-        cv2.circle(img, (int(x), int(y)), 12, 220, -1, lineType=cv2.LINE_AA)
-    img = cv2.GaussianBlur(img, (0, 0), 2.0)
-    cam = PinholeCamera(500.0, 500.0, (w - 1) / 2, (h - 1) / 2, w, h)
-    full = FrontEnd(cam, FrontEndConfig()).detect(img)
-    half = FrontEnd(cam, FrontEndConfig(detect_scale=0.5)).detect(img)
-    for f in (full, half):
-        for c in centres:
-            d = np.linalg.norm(f.uv_raw - np.array(c), axis=1)
-            i = int(np.argmin(d))
-            assert d[i] < 1.0, (c, d[i])
-    # the blob's keypoint has about the same scale at both resolutions
-    i_full = int(np.argmin(np.linalg.norm(full.uv_raw - np.array(centres[1]), axis=1)))
-    i_half = int(np.argmin(np.linalg.norm(half.uv_raw - np.array(centres[1]), axis=1)))
-    assert 0.7 < half.scale_px[i_half] / full.scale_px[i_full] < 1.4
+def test_runtime_settings_are_validated():
+    for bad in (dict(prefetch=-1), dict(prefetch=1.5), dict(blas_threads=0), dict(opencv_threads="many")):
+        with pytest.raises(ConfigError, match="runtime." + next(iter(bad))):
+            SlamConfig.from_dict({"runtime": bad})
+    c = SlamConfig.from_dict({"runtime": {"prefetch": 0, "blas_threads": None, "opencv_threads": 3}})
+    assert c.runtime.prefetch == 0 and c.runtime.blas_threads is None and c.runtime.opencv_threads == 3
 
 
 def test_the_run_holds_blas_to_its_setting_and_gives_it_back(scene_frames):
-    """``system.blas_threads`` (1 by default) holds the BLAS library's threads during
+    """``runtime.blas_threads`` (1 by default) holds the BLAS library's threads during
     ``run_sequence`` (checked from inside the run) and restores them after; ``None``
     leaves them alone; anything else is refused."""
     from threadpoolctl import threadpool_info
@@ -316,29 +292,28 @@ def test_the_run_holds_blas_to_its_setting_and_gives_it_back(scene_frames):
     assert seen and all(s == {1} for s in seen)
     assert blas_threads() == before
     seen.clear()
-    run_sequence(scene_frames, SlamConfig.from_dict({"system": {"blas_threads": None}}), max_frames=2, quiet=True,
+    run_sequence(scene_frames, SlamConfig.from_dict({"runtime": {"blas_threads": None}}), max_frames=2, quiet=True,
                  on_frame=lambda r: seen.append(blas_threads()))
     assert seen and all(s == before for s in seen)
     for bad in (0, 1.5, True, "2"):
         with pytest.raises(ConfigError, match="blas_threads"):
-            SlamConfig.from_dict({"system": {"blas_threads": bad}})
+            SlamConfig.from_dict({"runtime": {"blas_threads": bad}})
 
 
 def test_the_run_holds_opencv_to_its_thread_setting_and_gives_it_back(scene_frames):
-    """``system.opencv_threads: auto`` gives OpenCV one thread while SIFT frames are
+    """``runtime.opencv_threads: auto`` gives OpenCV one thread while SIFT frames are
     detected in the prefetch worker (FLANN's search in the tracking thread is serial), and
     leaves OpenCV's setting alone for ORB's parallel Hamming search and without a worker;
     an integer is applied as it is; OpenCV's setting is restored after the run."""
     from eifslam.system.runner import opencv_thread_count
 
     def cfg(**kw) -> SlamConfig:
-        fe = {k: kw.pop(k) for k in ("detector", "binary_index") if k in kw}
-        return SlamConfig.from_dict({"frontend": fe, "system": kw})
+        fe = {k: kw.pop(k) for k in ("detector",) if k in kw}
+        return SlamConfig.from_dict({"frontend": fe, "runtime": kw})
 
     assert opencv_thread_count(cfg(), prefetch=2) == 1
     assert opencv_thread_count(cfg(), prefetch=0) is None
     assert opencv_thread_count(cfg(detector="orb"), prefetch=2) is None
-    assert opencv_thread_count(cfg(detector="orb", binary_index="lsh"), prefetch=2) == 1
     assert opencv_thread_count(cfg(opencv_threads=3, detector="orb"), prefetch=2) == 3
     assert opencv_thread_count(cfg(opencv_threads=None), prefetch=2) is None
     before = cv2.getNumThreads()

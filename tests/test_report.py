@@ -251,7 +251,7 @@ def test_headlines_and_readable_tables(tmp_path):
     rng = np.random.default_rng(3)
     _make_run(tmp_path, rng)
     rep = json.loads((tmp_path / "report.json").read_text())
-    rep.update(box_ratio_true=0.8, box_ratio_estimated=0.7912, config={"system": {"mode": "smooth"}},
+    rep.update(box_ratio_true=0.8, box_ratio_estimated=0.7912, config={"smoothing": {"mode": "smooth"}},
                ate_units="m", stage_ms_median={"detect": 12.3456})
     (tmp_path / "report.json").write_text(json.dumps(rep))
     text = write_report(tmp_path, title="eifslam demo").read_text()
@@ -259,7 +259,7 @@ def test_headlines_and_readable_tables(tmp_path):
     assert "<th>Median time per frame, detect (ms)</th>" in text and ">12.35</td>" in text
     assert "<th>ATE RMSE (m)</th>" in text
     # the configuration is a table of its own, folded away
-    assert text.index("<details>") < text.index('id="config-system.mode"') < text.index("</details>")
+    assert text.index("<details>") < text.index('id="config-smoothing.mode"') < text.index("</details>")
     assert 'id="summary-config' not in text
 
 

@@ -40,9 +40,9 @@ def _poses(slam: Slam) -> np.ndarray:
 @pytest.mark.parametrize("recovery", ["full", "incremental"])
 def test_a_loaded_session_continues_as_the_uninterrupted_run(scene_images, tmp_path, recovery):
     scene, images = scene_images
-    cfg = SlamConfig().replace(system={"recovery": recovery, "keyframes": True,  # keyframe state saved too
-                                       "keyframe_parallax_deg": 2.0,  # (frames between keyframes)
-                                       "loop_train_frames": 3, "loop_learn_lag": 5})  # and a learnt place index
+    cfg = SlamConfig().replace(experimental={"recovery": recovery,  # keyframe state saved too
+                                             "keyframe_parallax_deg": 2.0,  # (frames between keyframes)
+                                             "loop_train_frames": 3, "loop_learn_lag": 5})  # a learnt place index
     whole = _run(scene, images, cfg, range(9))
     first = _run(scene, images, cfg, range(6))
     path = tmp_path / "six.npz"
@@ -173,7 +173,7 @@ def _hostile(members, marker: Path) -> dict[str, bytes]:
         "index out of range": _npz_bytes({**members, "frontend.raw_ids": members["frontend.raw_ids"] + 10**9}),
         "huge length": _npz_bytes({**members, "frontend.n_keypoints": members["frontend.n_keypoints"] * 10**12}),
         "track cycle": _npz_bytes({**members, "frontend.tracks.parent": members["frontend.tracks.parent"][::-1].copy()}),
-        "unknown setting": _npz_bytes(_with_doc(members, {**doc, "config": {"system": {"nonsense": 1}}})),
+        "unknown setting": _npz_bytes(_with_doc(members, {**doc, "config": {"tracking": {"nonsense": 1}}})),
         "bad camera": _npz_bytes(_with_doc(members, {**doc, "camera": {**doc["camera"], "fx": -1.0}})),
         "deep nesting": _npz_bytes({**members, "session.json": np.frombuffer(deep.encode(), np.uint8)}),
         "frame ids": _npz_bytes({**members, "results.frame_id": members["results.frame_id"] + 1}),

@@ -76,7 +76,7 @@ def test_slam_on_the_synthetic_front_end_recovers_the_truth():
     the frame ids map to any scene frames (every other frame here)."""
     sc = corridor_scene(16, np.random.default_rng(2))
     fe = SyntheticFrontEnd(sc, 2, noise=False, map_fraction=0.6)
-    slam = Slam(sc.camera, fe.slam_config(system={"scale_distance": fe.true_distance(0, 2)}), frontend=fe)
+    slam = Slam(sc.camera, fe.slam_config(tracking={"scale_distance": fe.true_distance(0, 2)}), frontend=fe)
     res = [slam.track(k, 0.1 * k) for k in range(0, 16, 2)]
     assert res[0].state is TrackingState.INITIALISING
     assert all(r.state is TrackingState.TRACKING for r in res[1:])

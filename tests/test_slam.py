@@ -17,16 +17,16 @@ from eifslam.system.slam import Slam, TrackingState
 
 
 def test_config_rejects_unknown_keys_and_bad_values():
-    with pytest.raises(ConfigError, match="system.nonsense"):
-        SlamConfig.from_dict({"system": {"nonsense": 1}})
-    with pytest.raises(ConfigError, match="mode"):
-        SlamConfig.from_dict({"system": {"mode": "fast"}})
-    with pytest.raises(ConfigError, match="map_fraction"):
+    with pytest.raises(ConfigError, match="tracking.nonsense"):
+        SlamConfig.from_dict({"tracking": {"nonsense": 1}})
+    with pytest.raises(ConfigError, match="smoothing.mode"):
+        SlamConfig.from_dict({"smoothing": {"mode": "fast"}})
+    with pytest.raises(ConfigError, match="frontend.map_fraction"):
         SlamConfig.from_dict({"frontend": {"map_fraction": 1.5}})
     with pytest.raises(ConfigError, match="section"):
         SlamConfig.from_dict({"backend": {}})
-    cfg = SlamConfig.from_dict({"system": {"mode": "filter"}})
-    assert cfg.system.mode == "filter" and SlamConfig().system.feature_parallax_deg == 2.0
+    cfg = SlamConfig.from_dict({"smoothing": {"mode": "filter"}})
+    assert cfg.smoothing.mode == "filter" and SlamConfig().mapping.feature_parallax_deg == 2.0
 
 
 @pytest.fixture(scope="module")
@@ -197,9 +197,9 @@ def test_runs_repeat_with_the_same_seed_and_bad_settings_are_named():
 
     np.testing.assert_array_equal(run(), run())
     with pytest.raises(ConfigError, match="reobserve_radius_px"):
-        SlamConfig.from_dict({"system": {"reobserve_radius_px": -1}})
+        SlamConfig.from_dict({"experimental": {"reobserve_radius_px": -1}})
     with pytest.raises(ConfigError, match="init_parallax_deg"):
-        SlamConfig.from_dict({"system": {"init_parallax_deg": 95}})
+        SlamConfig.from_dict({"experimental": {"init_parallax_deg": 95}})
 
 
 def test_one_set_of_defaults_and_string_enums():
@@ -207,18 +207,18 @@ def test_one_set_of_defaults_and_string_enums():
 
     from eifslam.cli.run import make_config
     from eifslam.frontend.config import Detector, FrontEndConfig
-    from eifslam.system.config import Mode, SystemConfig
+    from eifslam.system.config import Mode
 
     args = argparse.Namespace(map_fraction=None, features=None, max_features=None, mode=None)
     assert make_config(args) == SlamConfig()  # `eifslam run` without options
     assert SlamConfig().frontend == FrontEndConfig() and SlamConfig().filter.gate_chi2 == 9.21
-    cfg = SlamConfig.from_dict({"system": {"mode": "ba"}, "frontend": {"detector": "orb"}})
-    assert cfg.system.mode is Mode.BA and cfg.system.mode == "ba" and f"{cfg.system.mode}" == "ba"
+    cfg = SlamConfig.from_dict({"smoothing": {"mode": "ba"}, "frontend": {"detector": "orb"}})
+    assert cfg.smoothing.mode is Mode.BA and cfg.smoothing.mode == "ba" and f"{cfg.smoothing.mode}" == "ba"
     assert cfg.frontend.detector is Detector.ORB and not cfg.float_descriptors
-    with pytest.raises(ConfigError, match="contradiction_ratio"):
-        SystemConfig(contradiction_ratio=0.5)
-    with pytest.raises(ConfigError, match="min_map_features"):
-        SystemConfig(min_map_features=0)
+    with pytest.raises(ConfigError, match="tracking.scale_distance"):
+        SlamConfig.from_dict({"tracking": {"scale_distance": 0.0}})
+    with pytest.raises(ConfigError, match="experimental.window"):
+        SlamConfig.from_dict({"experimental": {"window": 0}})
 
 
 def test_finish_follows_the_mode_and_old_sessions_are_refused(tmp_path):
@@ -228,7 +228,7 @@ def test_finish_follows_the_mode_and_old_sessions_are_refused(tmp_path):
     from eifslam.sim.scene import make_scene, render_frame
 
     scene = make_scene(n_frames=54)
-    slam = Slam(scene.camera, SlamConfig().replace(system={"mode": "smooth"}))
+    slam = Slam(scene.camera, SlamConfig().replace(smoothing={"mode": "smooth"}))
     for k in range(4):
         slam.track(render_frame(scene, k), float(scene.timestamps[k]))
     fin = slam.finish()
@@ -257,7 +257,7 @@ def test_every_state_is_the_full_solve_after_each_frame():
 
     sc = corridor_scene(30, np.random.default_rng(4), step=0.3, points_per_metre=20.0)
     fe = SyntheticFrontEnd(sc, 4, map_fraction=0.6)
-    slam = Slam(sc.camera, fe.slam_config(system={"mode": "filter", "window": 2}), frontend=fe)
+    slam = Slam(sc.camera, fe.slam_config(smoothing={"mode": "filter"}, experimental={"window": 2}), frontend=fe)
     worst = 0.0
     for k in range(30):
         slam.track(k, 0.1 * k)

@@ -22,7 +22,7 @@ def test_frames_that_waited_are_placed_during_the_run_once_the_map_has_grown(sha
 
     seven = shared_dataset("7scenes-redkitchen-a")
     seq = open_source(seven)
-    cfg = SlamConfig.from_dict({"frontend": {"detector": "orb"}, "system": {"mode": "filter"}})
+    cfg = SlamConfig.from_dict({"frontend": {"detector": "orb"}, "smoothing": {"mode": "filter"}})
     n = 40
     run = run_sequence(seq, cfg, max_frames=n, quiet=True, prefetch=0)
     res = run.slam.results

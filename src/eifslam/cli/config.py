@@ -1,10 +1,12 @@
-"""``eifslam config [FILE]``: every setting as YAML (the defaults, or a file's effective
-configuration), and the reading of ``--config FILE.yaml``.
+"""``eifslam config [FILE]``: every setting as YAML with one comment line of help each (the
+defaults, or a file's effective configuration), and the reading of ``--config FILE.yaml``.
 
-A configuration file holds any subset of the sections ``frontend``, ``filter`` and
-``system`` of :class:`~eifslam.system.config.SlamConfig`; what it leaves out keeps its
-default, and every value is checked as :meth:`SlamConfig.from_dict` checks it. The file
-is read with a safe YAML loader (plain data only, no Python objects).
+A configuration file holds any subset of the sections of
+:class:`~eifslam.system.config.SlamConfig` (``frontend``, ``tracking``, ``mapping``,
+``keyframes``, ``loops``, ``smoothing``, ``runtime``, ``experimental``) and of their keys;
+what it leaves out keeps its default, and every value is checked as
+:meth:`SlamConfig.from_dict` checks it. The file is read with a safe YAML loader (plain
+data only, no Python objects).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from pathlib import Path
 import yaml
 
 from ..errors import ConfigError
-from ..system.config import SlamConfig
+from ..system.config import SECTIONS, SlamConfig
 
 
 class _Loader(yaml.SafeLoader):
@@ -54,16 +56,27 @@ def read_config(path: str | Path) -> SlamConfig:
     if values is None:
         values = {}
     if not isinstance(values, dict) or not all(isinstance(v, dict) for v in values.values()):
-        raise ConfigError(f"{path}: a configuration file maps sections (frontend, filter, system) to settings")
+        raise ConfigError(f"{path}: a configuration file maps sections ({', '.join(SECTIONS)}) to settings")
     try:
         return SlamConfig.from_dict(values)
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
 
 
-def config_yaml(config: SlamConfig) -> str:
-    """Every setting of ``config`` as YAML, which :func:`read_config` reads back."""
-    return yaml.safe_dump(config.to_dict(), sort_keys=False, default_flow_style=False)
+def config_yaml(config: SlamConfig, comments: bool = True) -> str:
+    """Every setting of ``config`` as YAML, which :func:`read_config` reads back; with
+    ``comments``, each setting follows a comment line of help (meaning, unit, default)."""
+    values = config.to_dict()
+    if not comments:
+        return yaml.safe_dump(values, sort_keys=False, default_flow_style=False)
+    helps = config.help_lines()
+    lines: list[str] = []
+    for section, settings in values.items():
+        lines.append(f"{section}:")
+        for key, value in settings.items():
+            lines.append(f"  # {helps[section][key]}")
+            lines.append("  " + yaml.safe_dump({key: value}, default_flow_style=False, width=10**6).rstrip("\n"))
+    return "\n".join(lines) + "\n"
 
 
 def main(args: argparse.Namespace) -> int:
@@ -73,9 +86,10 @@ def main(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
-    p = sub.add_parser("config", help="print every setting as YAML (the defaults, or a file's)",
-                       description="Print every setting of the configuration as YAML: the defaults, or with "
-                                   "FILE the configuration it gives (defaults for what it leaves out), checked. "
+    p = sub.add_parser("config", help="print every setting as YAML with its help (the defaults, or a file's)",
+                       description="Print every setting of the configuration as YAML, each after a comment line "
+                                   "of help (meaning, unit, default): the defaults, or with FILE the "
+                                   "configuration it gives (defaults for what it leaves out), checked. "
                                    "Save the output, edit it, and pass it to 'eifslam run --config FILE'.")
     p.add_argument("file", nargs="?", type=Path, default=None, metavar="FILE", help="a configuration file to check")
     p.set_defaults(func=main)

@@ -20,27 +20,28 @@ def add_common_options(p: argparse.ArgumentParser, max_features: int | None = No
     """Options shared by ``run``, ``demo`` and ``batch``; every default is the configuration's
     (``SlamConfig()``) unless the command passes its own ``max_features``. With ``several``
     (``batch``), ``--mode`` and ``--features`` take one or more values (a list)."""
-    fe, sy = _DEFAULT.frontend, _DEFAULT.system
+    fe = _DEFAULT.frontend
     nargs = "+" if several else None
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.add_argument("--mode", choices=[m.value for m in Mode], default=None, nargs=nargs,
                    help=f"filter only, filter + relinearise + smooth, or filter + full bundle adjustment "
-                        f"(default {sy.mode.value})")
+                        f"(smoothing.mode; default {_DEFAULT.smoothing.mode.value})")
     p.add_argument("--features", choices=list(DETECTORS), default=None, nargs=nargs,
-                   help=f"feature detector (default {fe.detector.value})")
+                   help=f"feature detector (frontend.detector; default {fe.detector.value})")
     p.add_argument("--map-fraction", type=float, default=None,
-                   help=f"fraction of tracks kept in the map (Ωm); default {fe.map_fraction:g}, measured "
-                        "(the paper kept 0.3)")
+                   help=f"fraction of tracks kept in the map (Ωm; frontend.map_fraction); default "
+                        f"{fe.map_fraction:g}")
     p.add_argument("--max-features", type=int, default=None,
-                   help=f"features detected per image (default {max_features or fe.max_features})")
+                   help=f"features detected per image (frontend.max_features; default "
+                        f"{max_features or fe.max_features})")
     p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames")
     p.add_argument("--no-html", action="store_true", help="skip report.html")
     loops = p.add_mutually_exclusive_group()
     loops.add_argument("--loop-closure", action="store_true",
-                       help="place recognition and loop closure (system.loop_closure true; "
-                            f"default {'on' if sy.loop_closure else 'off'})")
+                       help="place recognition and loop closure (loops.enabled true; "
+                            f"default {'on' if _DEFAULT.loops.enabled else 'off'})")
     loops.add_argument("--no-loop-closure", action="store_true",
-                       help="no place recognition or loop closure (system.loop_closure false)")
+                       help="no place recognition or loop closure (loops.enabled false)")
     p.add_argument("--config", type=Path, default=None, metavar="FILE.yaml",
                    help="settings from a YAML file (any of 'eifslam config' prints); the options above "
                         "override it")
@@ -142,12 +143,13 @@ def make_config(args: argparse.Namespace, base: SlamConfig | None = None) -> Sla
         fe["max_features"] = args.max_features
     if getattr(args, "seed", None) is not None:
         fe["seed"] = args.seed
-    sy = {} if args.mode is None else {"mode": args.mode}
+    smoothing = {} if args.mode is None else {"mode": args.mode}
+    loops = {}
     if getattr(args, "no_loop_closure", False):
-        sy["loop_closure"] = False
+        loops["enabled"] = False
     elif getattr(args, "loop_closure", False):
-        sy["loop_closure"] = True
-    return (base or SlamConfig()).replace(frontend=fe, system=sy)
+        loops["enabled"] = True
+    return (base or SlamConfig()).replace(frontend=fe, smoothing=smoothing, loops=loops)
 
 
 def parse_scale(values: list[str] | None) -> tuple | None:

@@ -24,7 +24,7 @@ from ..errors import EstimatorError
 from ..geometry import models
 from ..geometry.camera import PinholeCamera
 from .measurements import FeatureObservations, RelativePose
-from .options import FilterConfig, ZtForm
+from .options import FilterConfig
 from .state import StateLayout
 
 Array = NDArray[np.float64]
@@ -186,42 +186,16 @@ def constrained_features(feature: IntArray, ok: NDArray[np.bool_], Jf: Array, W:
     return np.asarray(ok, bool) & good[inv]
 
 
-def feature_innovation_chi2(innov: Array, W: Array, Jf: Array, Pf: Array, chi2_R: Array) -> Array:
-    """Normalised innovation squared of ``Zm`` against ``S = R + Jf Pf Jf^T``.
-
-    Parameters
-    ----------
-    innov : (N, 2) ``z - h(x)``, pixels.
-    W : (N, 2, 2) measurement information ``R^-1``, pixels^-2.
-    Jf : (N, 2, 3) Jacobian of the pixel with respect to the feature.
-    Pf : (N, 3, 3) feature covariance; NaN where unknown (then ``S = R``).
-    chi2_R : (N,) the statistic against ``R`` alone (``inf`` where unusable), kept where
-        ``Pf`` is NaN or the result is not finite.
-
-    Returns
-    -------
-    (N,) float
-        ``innov^T S^-1 innov``: a feature whose position is uncertain (e.g. triangulated
-        with little parallax) is not refused for disagreeing with its own estimate.
-    """
-    out = np.asarray(chi2_R, float).copy()
-    have = np.all(np.isfinite(Pf.reshape(len(Pf), -1)), 1) & np.isfinite(out)
-    if have.any():
-        S = np.linalg.inv(W[have]) + Jf[have] @ Pf[have] @ Jf[have].transpose(0, 2, 1)
-        r = innov[have]
-        c = np.einsum("ni,ni->n", r, np.linalg.solve(S, r[:, :, None])[:, :, 0])
-        out[have] = np.where(np.isfinite(c) & (c >= 0), c, out[have])
-    return out
+#: Largest angle, degrees, between a measured translation direction and the optical axis
+#: for which ``ZT`` takes the paper's form ``[x/z, y/z]``; beyond it the bearing form, which
+#: stays regular as the direction turns sideways, where ``x/z`` and ``y/z`` blow up.
+ZT_PAPER_MAX_ANGLE_DEG = 60.0
 
 
-def zt_uses_paper(config: FilterConfig, t: Array) -> NDArray[np.bool_]:
-    """Which measured unit directions ``t (N, 3)`` use the paper's ``ZT`` form."""
-    form = config.zt_form
-    if form == ZtForm.PAPER:
-        return np.ones(len(t), bool)
-    if form == ZtForm.BEARING:
-        return np.zeros(len(t), bool)
-    return t[:, 2] >= np.cos(np.radians(config.zt_paper_max_angle_deg))
+def zt_uses_paper(t: Array) -> NDArray[np.bool_]:
+    """Which measured unit directions ``t (N, 3)`` use the paper's ``ZT`` form (within
+    :data:`ZT_PAPER_MAX_ANGLE_DEG` of the optical axis); the others the bearing form."""
+    return t[:, 2] >= np.cos(np.radians(ZT_PAPER_MAX_ANGLE_DEG))
 
 
 def relative(layout: StateLayout, x: Array, config: FilterConfig, rps: list[RelativePose]):
@@ -243,7 +217,7 @@ def relative(layout: StateLayout, x: Array, config: FilterConfig, rps: list[Rela
     J[:, :3, 3:7], J[:, :3, 10:14] = JRi, JRj
     innov = np.zeros((N, 5))
     innov[:, :3] = -hR
-    paper = zt_uses_paper(config, tm)
+    paper = zt_uses_paper(tm)
     hB, JBi, JBj = models.bearing_model(x[ci[:, :3]], x[ci[:, 3:]], x[cj[:, :3]], tm)
     T = np.broadcast_to(np.eye(5), (N, 5, 5)).copy()
     J[:, 3:, :7], J[:, 3:, 7:] = JBi, JBj

@@ -32,7 +32,7 @@ from .filter_session import FilterSessionMixin
 from .incremental import IncrementalRecovery, TrackedInformationStore
 from .information import InformationStore
 from .measurements import FeatureObservations, MeasurementStore, PriorStore, RelativePose
-from .options import FilterConfig, FirstEstimates, Recovery, ZtForm
+from .options import WINDOW, FilterConfig, FirstEstimates, Recovery
 from .recovery import SchurFactor, factorize
 from .relinearisation import OnlineRelinearisation
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout, pose_tangent_covariance, read_features, read_pose, read_poses  # noqa: F401
@@ -59,12 +59,12 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         solve; :meth:`complete_estimate` back-substitutes the marginalised states.
     window : int
         Incremental recovery only: steps without a measurement before a state leaves the
-        active window.
+        active window (:data:`~eifslam.estimation.options.WINDOW` by default).
     """
 
     def __init__(
         self, camera: PinholeCamera, config: FilterConfig | None = None,
-        recovery: Recovery | str = Recovery.INCREMENTAL, window: int = 2,
+        recovery: Recovery | str = Recovery.INCREMENTAL, window: int = WINDOW,
     ) -> None:
         self.camera = camera
         self.config = config or FilterConfig()
@@ -245,19 +245,12 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         ok : (N,) bool, usable (predicted depth above ``min_depth``, finite, inside the gate).
         idx : (N, 10) state indices ``[pose 7, feature 3]``; J : (N, 2, 10);
         W : (N, 2, 2) information; innov : (N, 2) ``z - h(x)``; chi2 : (N,) normalised
-        innovation squared (``inf`` where not finite or behind the camera; with
-        ``config.gate_feature_uncertainty``, against ``R + J_f P_f J_f^T``, see
-        :meth:`feature_covariances`). With
+        innovation squared against ``R`` (``inf`` where not finite or behind the camera). With
         ``config.first_estimate_jacobians`` ``"features"`` (``"all"``), ``J`` is taken with
         the features (every state) at their first estimates, and a measurement must be
         usable there too; everything else at ``x``.
         """
-        aware = gate and self.config.gate_chi2 is not None and self.config.gate_feature_uncertainty and len(obs)
-        ok, idx, J, W, innov, chi2 = factors.features(self.layout, self.x, self.camera, self.config, obs,
-                                                      gate and not aware)
-        if aware:  # innovation covariance R + Jf P_f Jf^T where the feature's covariance is at hand
-            chi2 = factors.feature_innovation_chi2(innov, W, J[:, :, 7:], self.feature_covariances(obs.feature), chi2)
-            ok &= chi2 <= self.config.gate_chi2
+        ok, idx, J, W, innov, chi2 = factors.features(self.layout, self.x, self.camera, self.config, obs, gate)
         at = self.config.first_estimate_jacobians.points(self.x, self.first_estimates)
         if at is not None and len(obs):  # usable there too: in front, a finite prediction
             h, J, depth = factors.feature_model_at(idx, *at, self.camera)
@@ -507,4 +500,4 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         return self.covariance(self.layout.feature_columns([track_id])[0])
 
 
-__all__ = ["FilterConfig", "InformationFilter", "PriorStore", "Recovery", "ZtForm", "POSE_DIM", "FEATURE_DIM"]
+__all__ = ["FilterConfig", "InformationFilter", "PriorStore", "Recovery", "POSE_DIM", "FEATURE_DIM"]

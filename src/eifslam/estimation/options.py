@@ -1,8 +1,8 @@
-"""Typed options of the estimation layer: :class:`FilterConfig`, :class:`ZtForm`, :class:`Recovery`,
-:class:`FirstEstimates`.
+"""Typed options of the estimation layer: :class:`FilterConfig`, :class:`Recovery`,
+:class:`FirstEstimates`, :class:`NoiseEstimate`.
 
 The enums are ``str``-valued: they accept and compare equal to the plain strings of
-configuration files (``ZtForm("auto") == "auto"``).
+configuration files (``Recovery("full") == "full"``).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from ..errors import ConfigError
 
 class Choice(str, Enum):
     """A ``str``-valued enum that prints as its value: the base of every option with a
-    fixed set of values (:class:`ZtForm`, :class:`Recovery`, the front end's
+    fixed set of values (:class:`Recovery`, the front end's
     ``Detector``, the system's ``Mode``), so that configs given as plain strings work."""
 
     def __str__(self) -> str:
@@ -33,17 +33,10 @@ class Choice(str, Enum):
             raise ConfigError(f"{what} must be one of {allowed}, got {value!r}") from None
 
 
-class ZtForm(Choice):
-    """Model of the translation-direction measurement ``ZT``.
-
-    ``PAPER``: the paper's ``[x/z, y/z]``; ``BEARING``: the non-singular bearing form;
-    ``AUTO``: the paper's form within ``zt_paper_max_angle_deg`` of the optical axis,
-    the bearing form otherwise.
-    """
-
-    AUTO = "auto"
-    PAPER = "paper"
-    BEARING = "bearing"
+#: Steps without a measurement before a state leaves the incremental recovery's active
+#: window: more than the front end's matching window, so that a track that reappears
+#: rarely touches a marginalised feature.
+WINDOW = 5
 
 
 class Recovery(Choice):
@@ -89,7 +82,7 @@ class FirstEstimates(Choice):
 
 class NoiseEstimate(Choice):
     """How robust smoothing sets its ``Zm`` gate from the residuals
-    (``SystemConfig.smoothing_noise_estimate``; :mod:`eifslam.estimation.noise`).
+    (``SlamConfig.experimental.noise_estimate``; :mod:`eifslam.estimation.noise`).
 
     ``OFF``: at the stated ``sigma_px``; ``GLOBAL``: scaled by one noise ratio from every
     ``Zm``; ``TRACK_LENGTH``: by one ratio per group of track lengths (2; 3-4; 5-8; ...).
@@ -120,13 +113,6 @@ class FilterConfig:
         Relative standard deviation of the scale prior (fraction of the prior distance).
     quat_norm_sigma : float
         Standard deviation of the ``|q|^2 = 1`` pseudo-measurement.
-    zt_form : ZtForm or {"auto", "paper", "bearing"}
-        ``ZT`` model: the paper's ``[x/z, y/z]``, the non-singular bearing form, or the
-        paper's form when the measured direction is within ``zt_paper_max_angle_deg`` of
-        the optical axis and the bearing form otherwise.
-    zt_paper_max_angle_deg : float
-        Largest angle between the translation direction and the optical axis for which
-        ``auto`` uses the paper's form.
     gate_chi2 : float or None
         Reject a ``Zm`` whose normalised innovation squared exceeds this (2 DOF); ``None``
         fuses everything.
@@ -137,19 +123,6 @@ class FilterConfig:
         its initial guess, so that a state whose measurements were all rejected (gate,
         depth) never makes ``I`` singular. Its information, ``1e-6`` by default, is
         negligible next to any measurement's; it touches diagonal blocks only.
-    gate_feature_uncertainty : bool
-        Test a ``Zm`` against its innovation covariance ``R + J_f P_f J_f^T`` (``P_f`` the
-        feature's marginal covariance, where the incremental window has it:
-        :meth:`InformationFilter.feature_covariances`) instead of ``R`` alone. With ``R``
-        alone, an observation of a feature whose estimate is off (e.g. triangulated with
-        little parallax) is refused for disagreeing with that estimate, which is then
-        never corrected: on the synthetic corridor (every measurement correct) the gate
-        refused about 10% of the ``Zm`` with ``R`` alone (``docs/estimator.md``, Consistency).
-        Off by default: on real images it also admits wrong matches of uncertain features
-        (smoothed ATE, seed 0, SIFT: middlebury-templering 0.00203 -> 0.0036 m,
-        strecha-fountain-p11 0.00308 -> 0.00353 m; kitti-seq1 0.0195 -> 0.0177 m and
-        strecha-herzjesu-p25 0.00954 -> 0.00858 m improved); measured again in session 38,
-        kitti-07's scale collapses with it (filter ATE 20.9 m).
     first_estimate_jacobians : FirstEstimates or {"off", "features", "all"} or bool
         Linearise every new ``Zm`` (and, with ``"all"``, ``ZR``/``ZT``) with the Jacobians
         of some states at their *first* estimates (the value they entered the state with;
@@ -188,12 +161,9 @@ class FilterConfig:
     prior_sigma: float = 1e-6
     scale_prior_sigma: float = 1e-6
     quat_norm_sigma: float = 1e-3
-    zt_form: ZtForm = ZtForm.AUTO
-    zt_paper_max_angle_deg: float = 60.0
     gate_chi2: float | None = None
     min_depth: float = 1e-6
     weak_prior_sigma: float = 1e3
-    gate_feature_uncertainty: bool = False
     first_estimate_jacobians: FirstEstimates = FirstEstimates.OFF
     relinearise_threshold: float | None = None
     relinearise_budget: int = 50
@@ -203,11 +173,8 @@ class FilterConfig:
             v = getattr(self, key)
             if not (np.isfinite(v) and v > 0):
                 raise ConfigError(f"filter.{key} must be a positive number, got {v!r}")
-        object.__setattr__(self, "zt_form", ZtForm.parse(self.zt_form, "filter.zt_form"))
         object.__setattr__(self, "first_estimate_jacobians",
                            FirstEstimates.parse(self.first_estimate_jacobians, "filter.first_estimate_jacobians"))
-        if not 0.0 < self.zt_paper_max_angle_deg < 90.0:
-            raise ConfigError("filter.zt_paper_max_angle_deg must lie in (0, 90)")
         if self.gate_chi2 is not None and not self.gate_chi2 > 0:
             raise ConfigError("filter.gate_chi2 must be positive or None")
         t = self.relinearise_threshold
@@ -218,4 +185,4 @@ class FilterConfig:
             raise ConfigError(f"filter.relinearise_budget must be an integer >= 1, got {b!r}")
 
 
-__all__ = ["FilterConfig", "FirstEstimates", "Recovery", "ZtForm"]
+__all__ = ["FilterConfig", "FirstEstimates", "NoiseEstimate", "Recovery", "WINDOW"]

@@ -73,7 +73,7 @@ class BatchTask:
     @property
     def mode(self) -> str:
         """The system's mode (``filter``, ``smooth`` or ``ba``)."""
-        return str(self.config["system"]["mode"])
+        return str(self.config["smoothing"]["mode"])
 
     @property
     def features(self) -> str:
@@ -143,7 +143,7 @@ def make_tasks(sources: Sequence[str | Path], configs: Sequence[SlamConfig], out
         raise EifslamError(f"the batch's sources need one name each, all different (got {names})")
     seen: set[tuple[str, str]] = set()
     for c in configs:
-        key = (str(c.system.mode), str(c.frontend.detector))
+        key = (str(c.smoothing.mode), str(c.frontend.detector))
         if key in seen:
             raise EifslamError(f"two settings of the batch have mode {key[0]} and features {key[1]}: "
                                "their outputs would share a folder")
@@ -152,7 +152,7 @@ def make_tasks(sources: Sequence[str | Path], configs: Sequence[SlamConfig], out
     for src, name in zip(sources, names):
         for c in configs:
             d = c.to_dict()
-            folder = f"{name}-{d['system']['mode']}-{d['frontend']['detector']}"
+            folder = f"{name}-{d['smoothing']['mode']}-{d['frontend']['detector']}"
             tasks.append(BatchTask(source=str(src), dataset=name, config=d, out_dir=str(Path(out) / folder),
                                    max_frames=max_frames, html=html, extra=dict(extra(c)) if extra else {}))
     return tasks

@@ -137,7 +137,7 @@ def plot_map_top(
     point_size : marker area of the features (points²).
     rng : generator for the subset (see :func:`subsample_indices`).
     units : name of the length unit of the positions, on the axes (default: the map's own
-        unit, fixed by ``system.scale_distance`` between the first two poses).
+        unit, fixed by ``tracking.scale_distance`` between the first two poses).
     limits : ``(lo, hi)`` (3,) corners of the region shown; default :func:`robust_limits`.
     frusta : with ``R_wc``, draw the viewing wedge (optical axis and a 60-degree field of
         view, cut at 6 % of the view's width) of this many evenly spaced cameras.

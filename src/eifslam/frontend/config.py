@@ -1,4 +1,5 @@
-"""Front-end configuration: one typed, frozen dataclass, validated on construction.
+"""Front-end configuration: the ``frontend`` section of the settings, and the front end's
+tuning constants.
 
 Pure Python (no OpenCV): the availability of a detector in the installed OpenCV is
 checked when the detector is created (:mod:`eifslam.frontend.features`).
@@ -6,13 +7,13 @@ checked when the detector is created (:mod:`eifslam.frontend.features`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
-from typing import Any, Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar, Mapping
 
-from ..errors import ConfigError
 from ..estimation.options import Choice
+from ..settings import Int, OneOf, Real, build_section, check_section, setting
 
-__all__ = ["FrontEndConfig", "Detector", "CovarianceMethod", "DETECTORS", "COVARIANCE_METHODS"]
+__all__ = ["FrontEndConfig", "Detector", "DETECTORS"]
 
 
 class Detector(Choice):
@@ -21,261 +22,88 @@ class Detector(Choice):
     SIFT = "sift"
     ORB = "orb"
     AKAZE = "akaze"
-    SURF = "surf"
 
     @property
     def float_descriptors(self) -> bool:
-        """Whether its descriptors are floats (SIFT, SURF) rather than binary (ORB, AKAZE)."""
-        return self in (Detector.SIFT, Detector.SURF)
-
-
-class CovarianceMethod(Choice):
-    """How the relative pose's covariance is computed (a ``str`` enum)."""
-
-    FAST = "fast"  #: first order, ``sigma_px**2 (J^T J)^-1`` of the Sampson residuals
-    UT = "ut"  #: unscented transform of the point noise through the refinement
+        """Whether its descriptors are floats (SIFT) rather than binary (ORB, AKAZE)."""
+        return self is Detector.SIFT
 
 
 DETECTORS = tuple(d.value for d in Detector)
-COVARIANCE_METHODS = tuple(c.value for c in CovarianceMethod)
 COLOR_ORDERS = ("bgr", "rgb")
-RANSAC_METHODS = ("usac", "magsac", "ransac")
-BINARY_INDEXES = ("bruteforce", "lsh")
 
 
 @dataclass(frozen=True)
 class FrontEndConfig:
-    """Parameters of the front end (features, split, matching, relative pose, uncertainty).
+    """Settings of the front end (section ``frontend``): features, the split of tracks,
+    the matching window, the pixel noise, repeatability.
 
-    Every value is checked in ``__post_init__``; a bad value raises
-    :class:`~eifslam.errors.ConfigError` naming the key. Build from a mapping with
-    :meth:`from_dict`, which also rejects unknown keys.
-
-    Attributes
-    ----------
-    detector : Detector or {"sift", "orb", "akaze", "surf"}
-        Feature detector/descriptor (stored as a :class:`Detector`). SURF and AKAZE need an OpenCV build that ships them.
-    max_features : int
-        Cap on keypoints per image (the strongest are kept). 2000: the system's choice,
-        measured on the shared data sets (docs/system.md); 1000 already gives the same
-        ZR/ZT accuracy on kitti-seq1 (1226x370) in less time, but fewer map features.
-    sift_octave_layers : int
-        SIFT scales per octave (3, OpenCV's default; 2 is ~10-25% faster with the same
-        relative-pose accuracy on kitti-seq1 but tracks fewer features).
-    sift_contrast_threshold : float > 0
-        SIFT's contrast threshold (OpenCV's ``contrastThreshold``, 0.04 by default; OpenCV
-        divides it by ``sift_octave_layers``): weaker extrema are dropped.
-    sift_precise_upscale : bool
-        OpenCV's ``enable_precise_upscale``: the doubled first octave maps pixel ``x`` to
-        ``2x``. Without it every SIFT keypoint is detected a quarter pixel right of and
-        below where it is (rendered blobs, docs/frontend.md). Off by default: it lost on
-        five of the seven shared sets (leave-one-out, docs/loo_study.md).
-    orb_candidates : float >= 1
-        ORB detects this many times ``max_features`` keypoints and keeps ``max_features`` of
-        them spread over the image (:func:`~eifslam.frontend.features.spread_keypoints`:
-        strongest first in each cell of a grid of about two keypoints per cell, cell by
-        cell), instead of OpenCV's strongest, which cluster on the most textured parts.
-        1 (default): OpenCV's selection. 2 lowered the median ORB ATE over three feature
-        counts on five of the seven shared sets but failed kitti-07 twice in three runs
-        (docs/frontend.md, "Spreading ORB's keypoints").
-    detect_scale : float in (0, 1]
-        Images are resized by this factor (``INTER_AREA``) before detection and the
-        keypoints scaled back to full-resolution pixels (1: detect at full resolution).
-        Colours and the Laplacian sign are taken from the full-resolution image.
-    normalise_gain : bool
-        Before detection, scale a dark grayscale image (its 99.99th percentile below half
-        the range) so that the percentile becomes 255
-        (:func:`~eifslam.frontend.features.normalise_gain`). The detectors' thresholds
-        (SIFT's contrast, FAST's intensity step) are absolute intensities, so without it a
-        dark image (a dark object, a short exposure, 12-bit data in 16-bit files) gives
-        few keypoints or none (docs/frontend.md, "Dark images").
-    color_order : {"bgr", "rgb"}
-        Channel order of 3-channel input images (OpenCV's ``imread`` gives BGR).
-    map_fraction : float in [0, 1]
-        Fraction of new tracks assigned to the map set ``Ωm``; the rest go to ``Ωp``
-        (0.5, measured: docs/split_study.md; the paper kept 0.3).
-    ratio : float in (0, 1]
-        Lowe's ratio test threshold (best / second-best descriptor distance).
-    mutual : bool
-        Keep only mutual nearest neighbours.
-    flann_trees : int >= 1
-        Randomised k-d trees of the FLANN index (float descriptors: SIFT, SURF).
-    flann_checks : int >= 1
-        Leaves FLANN visits per query (more: closer to exact nearest neighbours, slower).
-    binary_index : {"bruteforce", "lsh"}
-        Search of binary descriptors (ORB, AKAZE) when frames are matched: exact Hamming
-        brute force, or a FLANN locality-sensitive hashing index per frame, built once and
-        reused like the k-d forest of float descriptors (approximate: a quarter off ORB's
-        matching, but one 7-Scenes run failed with it; docs/realtime.md. Not for use yet).
-    match_window : int >= 1
-        A new frame is matched against this many previous frames (1 = previous only; 3
-        by default); older frames only see keypoints still unmatched, to recover tracks
-        lost for a frame.
-    ransac_threshold_px : float > 0
-        Epipolar (Sampson) inlier threshold of the essential-matrix RANSAC, pixels.
-    ransac_confidence : float in (0, 1)
-        RANSAC confidence (0.9999). OpenCV sets the number of iterations from the best
-        inlier ratio found so far: at 0.999 a wrong model with 90% inliers stopped USAC
-        after about 8 samples on strecha-castle-p30's first pair (46° apart), where the
-        right one has 99% (docs/frontend.md).
-    ransac_method : {"usac", "magsac", "ransac"}
-        OpenCV robust estimator: ``USAC_DEFAULT`` (with local optimisation; ~20x faster
-        than the classic ``RANSAC`` here and finds more inliers), ``USAC_MAGSAC`` or
-        ``RANSAC``.
-    min_matches : int >= 5
-        Fewer epipolar inliers than this between two frames: the pair is not used to
-        extend tracks (``FrameResult.ok`` is False).
-    min_inliers : int >= 5
-        Minimum ``Ωp`` inliers for a relative-pose measurement.
-    min_common : int >= 5
-        Minimum ``Ωp`` tracks common to the two frames before trying a relative pose.
-    min_parallax_deg : float >= 0
-        Minimum median parallax, degrees: the angle between the bearings of frame *i* and
-        the bearings of frame *j* rotated by the estimated ``R_ij`` (triangulation angle).
-    min_rotation_residual_deg : float >= 0
-        Pure-rotation test, degrees: the median angle left after the best pure-rotation
-        fit of the bearings must exceed this (about the noise level for a pure rotation or
-        a repeated frame); below it the pair has "no parallax" whatever the solver says.
-    refine : bool
-        Refine the RANSAC ``R, t`` by Gauss-Newton on the inliers' Sampson error.
-    refine_iterations : int >= 1
-        Gauss-Newton iterations of that refinement.
-    sigma_px : float > 0
-        Standard deviation of image-point noise per coordinate, pixels.
-    covariance : CovarianceMethod or {"fast", "ut"}
-        ``"fast"``: first-order ``sigma_px**2 (J^T J)^-1`` of the Sampson residuals;
-        ``"ut"``: unscented transform of the point noise through the refinement.
-    ut_max_points : int >= 5
-        The UT uses at most this many inliers (evenly subsampled) to bound its cost; the
-        covariance is then scaled by ``n_used / n_inliers``.
-    prefetch : int >= 0
-        How many frames ahead :func:`eifslam.system.runner.run_sequence` decodes and
-        detects in a worker thread while the current frame is matched and fused (a
-        pipelined front end; the results are those of the sequential order). 0: no
-        worker thread, everything in the calling thread.
-    seed : int or None
-        Seed of OpenCV's random generator, set to ``seed + frame_id`` when each frame is
-        added (FLANN's randomised k-d trees and the RANSAC samplers draw from it), so
-        that a run is repeatable and a resumed session continues exactly as the
-        uninterrupted run; None leaves it alone. A different seed is a different run: on long
-        sequences the results of runs differ by more than small configuration changes do.
+    Each field declares its help and its check (:func:`~eifslam.settings.setting`); a bad
+    value raises :class:`~eifslam.errors.ConfigError` naming ``frontend.key``. The class
+    attributes below the fields are tuning constants, not settings.
     """
 
-    # features
-    detector: Detector = Detector.SIFT
-    max_features: int = 2000
-    sift_octave_layers: int = 3
-    sift_contrast_threshold: float = 0.04
-    sift_precise_upscale: bool = False
-    orb_candidates: float = 1.0
-    detect_scale: float = 1.0
-    normalise_gain: bool = True
-    color_order: str = "bgr"
-    # split of tracks between relative poses (Ωp) and the map (Ωm)
-    map_fraction: float = 0.5
-    # association
-    ratio: float = 0.8
-    mutual: bool = True
-    flann_trees: int = 4
-    flann_checks: int = 48
-    binary_index: str = "bruteforce"
-    match_window: int = 3
-    ransac_threshold_px: float = 1.0
-    ransac_confidence: float = 0.9999
-    ransac_method: str = "usac"
-    min_matches: int = 15
-    # relative pose
-    min_inliers: int = 15
-    min_common: int = 20
-    min_parallax_deg: float = 0.5
-    min_rotation_residual_deg: float = 0.1
-    refine: bool = True
-    refine_iterations: int = 3
-    # uncertainty
-    sigma_px: float = 1.0
-    covariance: CovarianceMethod = CovarianceMethod.FAST
-    ut_max_points: int = 300
-    # pipelining (the runner)
-    prefetch: int = 2
-    # repeatability
-    seed: int | None = 0
+    detector: Detector = setting(Detector.SIFT, "feature detector and descriptor: sift, orb or akaze",
+                                 OneOf(Detector))
+    max_features: int = setting(2000, "keypoints kept per image, the strongest", Int(10))
+    map_fraction: float = setting(0.5, "fraction of new tracks that become map features (the paper's Ωm; "
+                                       "the rest give relative poses)", Real(0.0, 1.0))
+    sigma_px: float = setting(1.0, "standard deviation of a keypoint's position per coordinate, pixels "
+                                   "(relative poses' covariance and Zm noise)", Real(0.0, 1e3, lo_open=True))
+    color_order: str = setting("bgr", "channel order of 3-channel images: bgr (OpenCV's imread) or rgb",
+                               OneOf(COLOR_ORDERS))
+    match_window: int = setting(3, "previous frames a new frame is matched against (older ones only for "
+                                   "keypoints still unmatched)", Int(1))
+    seed: int | None = setting(0, "seed of OpenCV's random draws, seed + frame id per frame (null: left alone)",
+                               Int(-2**31, 2**31 - 1, none=True))
+
+    # -- tuning constants (not settings) ----------------------------------------------
+    #: SIFT scales per octave: OpenCV's default (2 is faster but tracks fewer features).
+    sift_octave_layers: ClassVar[int] = 3
+    #: SIFT's contrast threshold: OpenCV's default.
+    sift_contrast_threshold: ClassVar[float] = 0.04
+    #: Lowe's ratio test (best / second-best descriptor distance): Lowe's own choice.
+    ratio: ClassVar[float] = 0.8
+    #: Keep only mutual nearest neighbours (fewer wrong matches for little cost).
+    mutual: ClassVar[bool] = True
+    #: Randomised k-d trees of the FLANN index of float descriptors.
+    flann_trees: ClassVar[int] = 4
+    #: Leaves FLANN visits per query: close to exact neighbours at a fraction of the cost.
+    flann_checks: ClassVar[int] = 48
+    #: Epipolar (Sampson) inlier threshold of the essential-matrix RANSAC, pixels: about
+    #: the keypoint noise.
+    ransac_threshold_px: ClassVar[float] = 1.0
+    #: RANSAC confidence: at 0.999 USAC stopped on a wrong model with 90% inliers on a
+    #: wide pair where the right one has 99%.
+    ransac_confidence: ClassVar[float] = 0.9999
+    #: OpenCV's robust estimator: USAC (with local optimisation) is much faster than the
+    #: classic RANSAC here and finds more inliers.
+    ransac_method: ClassVar[str] = "usac"
+    #: Fewer epipolar inliers between two frames: the pair does not extend tracks.
+    min_matches: ClassVar[int] = 15
+    #: Fewest Ωp inliers of a relative-pose measurement.
+    min_inliers: ClassVar[int] = 15
+    #: Fewest Ωp tracks common to two frames before a relative pose is tried.
+    min_common: ClassVar[int] = 20
+    #: Least median parallax of a relative pose, degrees (triangulation angle).
+    min_parallax_deg: ClassVar[float] = 0.5
+    #: Pure-rotation test, degrees: about the noise level of a pure rotation.
+    min_rotation_residual_deg: ClassVar[float] = 0.1
+    #: Gauss-Newton iterations of the relative pose's refinement on the Sampson error.
+    refine_iterations: ClassVar[int] = 3
 
     def __post_init__(self) -> None:
-        def bad(key: str, msg: str) -> ConfigError:
-            return ConfigError(f"front-end config '{key}': {msg}, got {getattr(self, key)!r}")
-
-        for key, enum, names in (("detector", Detector, DETECTORS), ("covariance", CovarianceMethod,
-                                                                         COVARIANCE_METHODS)):
-            try:
-                object.__setattr__(self, key, enum(getattr(self, key)))
-            except ValueError:
-                raise bad(key, f"must be one of {names}") from None
-        if self.ransac_method not in RANSAC_METHODS:
-            raise bad("ransac_method", f"must be one of {RANSAC_METHODS}")
-        if self.binary_index not in BINARY_INDEXES:
-            raise bad("binary_index", f"must be one of {BINARY_INDEXES}")
-        if self.color_order not in COLOR_ORDERS:
-            raise bad("color_order", f"must be one of {COLOR_ORDERS}")
-        ints = {
-            "max_features": 10,
-            "sift_octave_layers": 1,
-            "match_window": 1,
-            "min_matches": 5,
-            "min_inliers": 5,
-            "min_common": 5,
-            "refine_iterations": 1,
-            "ut_max_points": 5,
-            "flann_trees": 1,
-            "flann_checks": 1,
-            "prefetch": 0,
-        }
-        for key, lo in ints.items():
-            v = getattr(self, key)
-            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-                raise bad(key, f"must be an integer >= {lo}")
-        for key in ("mutual", "refine", "normalise_gain", "sift_precise_upscale"):
-            if not isinstance(getattr(self, key), bool):
-                raise bad(key, "must be a bool")
-        checks = {
-            "map_fraction": lambda v: 0.0 <= v <= 1.0,
-            "ratio": lambda v: 0.0 < v <= 1.0,
-            "ransac_threshold_px": lambda v: 0.0 < v < 1e3,
-            "ransac_confidence": lambda v: 0.0 < v < 1.0,
-            "min_parallax_deg": lambda v: 0.0 <= v < 90.0,
-            "min_rotation_residual_deg": lambda v: 0.0 <= v < 90.0,
-            "sigma_px": lambda v: 0.0 < v < 1e3,
-            "sift_contrast_threshold": lambda v: 0.0 < v < 1.0,
-            "orb_candidates": lambda v: 1.0 <= v <= 20.0,
-            "detect_scale": lambda v: 0.0 < v <= 1.0,
-        }
-        for key, ok in checks.items():
-            v = getattr(self, key)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not ok(float(v)):
-                raise bad(key, "is out of range")
+        check_section(self, "frontend")
 
     @property
     def flann_search(self) -> bool:
         """Whether frames are matched with a FLANN index (approximate, built with OpenCV's
-        seeded generator, serial): float descriptors, or binary ones with ``binary_index:
-        lsh``; otherwise binary descriptors are searched exactly by brute force."""
-        return self.detector.float_descriptors or self.binary_index == "lsh"
+        seeded generator, serial): float descriptors; binary descriptors are searched
+        exactly by brute force."""
+        return self.detector.float_descriptors
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> "FrontEndConfig":
-        """Build a config from a mapping, rejecting unknown keys.
-
-        Parameters
-        ----------
-        values : mapping
-            Keys are attribute names of :class:`FrontEndConfig`.
-
-        Raises
-        ------
-        ConfigError
-            On an unknown key or an invalid value.
-        """
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ConfigError(f"unknown front-end config key(s): {', '.join(unknown)}")
-        return cls(**dict(values))
+        """Build from a mapping of field names, rejecting unknown keys
+        (:class:`~eifslam.errors.ConfigError`)."""
+        return build_section(cls, values, "frontend")

@@ -1,7 +1,7 @@
 """Keypoint detection and description with OpenCV, undistortion, colours, Laplacian sign.
 
 The image is checked (:func:`check_image`), converted to grayscale, and the configured
-detector (SIFT by default; ORB, AKAZE, SURF where the installed OpenCV ships them) finds at
+detector (SIFT by default; ORB, AKAZE) finds at
 most ``max_features`` keypoints. Keypoints leave this module undistorted (``uv``) and raw
 (``uv_raw``, for colours).
 """
@@ -24,7 +24,7 @@ from .split import laplacian_sign
 
 Array = NDArray[np.float64]
 
-__all__ = ["AheadMatch", "Features", "spread_keypoints", "check_image", "make_detector", "detect_features", "undistort_pixels",
+__all__ = ["AheadMatch", "Features", "check_image", "make_detector", "detect_features", "undistort_pixels",
            "set_opencv_threads", "opencv_threads", "normalise_gain"]
 
 
@@ -66,7 +66,7 @@ class Features:
     uv_raw : (N, 2) float64
         Pixel coordinates as detected (with the lens distortion).
     descriptors : (N, D) uint8 or float32
-        Descriptors (binary for ORB/AKAZE, float for SIFT/SURF).
+        Descriptors (binary for ORB/AKAZE, float for SIFT).
     scale_px : (N,) float64
         Keypoint scale (approximate Gaussian sigma), pixels.
     response : (N,) float64
@@ -132,74 +132,36 @@ def check_image(image: object, camera: PinholeCamera) -> np.ndarray:
     return np.ascontiguousarray(out)
 
 
+def akaze_factory():
+    """OpenCV's AKAZE constructor: ``cv2.AKAZE_create`` (OpenCV 4) or
+    ``cv2.xfeatures2d.AKAZE_create`` (OpenCV 5's contrib wheel); None when neither exists."""
+    factory = getattr(cv2, "AKAZE_create", None)
+    return factory if factory is not None else getattr(getattr(cv2, "xfeatures2d", None), "AKAZE_create", None)
+
+
 def make_detector(config: FrontEndConfig) -> "cv2.Feature2D":
     """The OpenCV detector/descriptor named by ``config.detector``.
 
     Raises
     ------
     ConfigError
-        When the installed OpenCV does not provide it (SURF needs a contrib build with
-        non-free modules; AKAZE is absent from OpenCV 5's main modules).
+        When the installed OpenCV does not provide it (AKAZE is absent from OpenCV 5's
+        main wheel; the contrib wheel, ``opencv-contrib-python-headless``, has it).
     """
     n = config.max_features
     name = config.detector
     if name == "sift":
         return cv2.SIFT_create(nfeatures=n, nOctaveLayers=config.sift_octave_layers,
-                               contrastThreshold=float(config.sift_contrast_threshold),
-                               enable_precise_upscale=bool(config.sift_precise_upscale))
+                               contrastThreshold=float(config.sift_contrast_threshold))
     if name == "orb":
-        return cv2.ORB_create(nfeatures=max(n, int(round(n * float(config.orb_candidates)))), fastThreshold=10)
-    if name == "akaze":
-        factory = getattr(cv2, "AKAZE_create", None)
-        if factory is None:
-            raise ConfigError(
-                f"detector 'akaze' is not available in the installed OpenCV {cv2.__version__} "
-                "(install an OpenCV build that has cv2.AKAZE_create)"
-            )
-        return factory(threshold=1e-4)
-    xf = getattr(cv2, "xfeatures2d", None)
-    factory = getattr(xf, "SURF_create", None) if xf is not None else None
+        return cv2.ORB_create(nfeatures=n, fastThreshold=10)
+    factory = akaze_factory()
     if factory is None:
         raise ConfigError(
-            f"detector 'surf' is not available in the installed OpenCV {cv2.__version__} "
-            "(needs opencv-contrib with non-free modules, cv2.xfeatures2d.SURF_create)"
+            f"detector 'akaze' is not available in the installed OpenCV {cv2.__version__} "
+            "(install opencv-contrib-python-headless, which has it)"
         )
-    try:
-        return factory(hessianThreshold=300)
-    except cv2.error as exc:  # built without OPENCV_ENABLE_NONFREE
-        raise ConfigError(f"detector 'surf' is not usable in this OpenCV build: {exc}") from None
-
-
-def spread_keypoints(uv: Array, response: Array, n: int, width: int, height: int) -> NDArray[np.int64]:
-    """Indices of ``n`` keypoints spread over the image: the strongest of every cell of a
-    grid sized for about two keypoints per cell at ``n`` (cell side ``sqrt(W H / (n / 2))``),
-    then the second strongest of every cell, and so on (ties by response, strongest first).
-
-    Parameters
-    ----------
-    uv : (N, 2) pixels; response : (N,) detector responses (larger is stronger).
-    n : int
-        How many to keep (all when ``N <= n``).
-    width, height : int
-        Image size, pixels.
-
-    Returns
-    -------
-    (min(N, n),) int64 indices into the keypoints, in the order chosen.
-    """
-    uv = np.asarray(uv, float).reshape(-1, 2)
-    response = np.asarray(response, float).reshape(-1)
-    if len(uv) <= n:
-        return np.arange(len(uv), dtype=np.int64)
-    side = float(np.sqrt(width * height / max(n / 2.0, 1.0)))
-    cols = int(np.ceil(width / side)) + 2
-    cell = (np.floor(uv[:, 1] / side).astype(np.int64) + 1) * cols + np.floor(uv[:, 0] / side).astype(np.int64) + 1
-    order = np.lexsort((-response, cell))  # by cell, strongest first within each
-    c = cell[order]
-    first = np.r_[0, np.flatnonzero(c[1:] != c[:-1]) + 1]
-    rank = np.empty(len(uv), np.int64)
-    rank[order] = np.arange(len(order)) - np.repeat(first, np.diff(np.r_[first, len(order)]))
-    return np.lexsort((-response, rank))[:n].astype(np.int64)
+    return factory(threshold=1e-4)
 
 
 def undistort_pixels(uv_raw: Array, camera: PinholeCamera) -> Array:
@@ -292,19 +254,10 @@ def detect_features(
     t0 = time.perf_counter()
     img = check_image(image, camera)
     gray, rgb = _gray_and_rgb(img, config.color_order)
-    if config.normalise_gain:
-        gray = normalise_gain(gray)
-    s = float(config.detect_scale)
-    if s < 1.0:
-        small = cv2.resize(gray, (max(1, round(gray.shape[1] * s)), max(1, round(gray.shape[0] * s))),
-                           interpolation=cv2.INTER_AREA)
-        sx, sy = small.shape[1] / gray.shape[1], small.shape[0] / gray.shape[0]
-        kps, desc = detector.detectAndCompute(small, None)
-    else:
-        sx = sy = 1.0
-        kps, desc = detector.detectAndCompute(gray, None)
+    gray = normalise_gain(gray)
+    kps, desc = detector.detectAndCompute(gray, None)
     if desc is None or len(kps) == 0:
-        d = 32 if config.detector in ("orb",) else 128
+        d = {"orb": 32, "akaze": 61}.get(str(config.detector), 128)
         dtype = np.uint8 if config.detector in ("orb", "akaze") else np.float32
         return Features(
             np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, d), dtype), np.zeros(0),
@@ -313,14 +266,8 @@ def detect_features(
         )
     uv_raw = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
     size = np.array([k.size for k in kps], np.float64)
-    if s < 1.0:  # back to full-resolution pixels (pixel centres: x = (x' + 0.5) / s - 0.5)
-        uv_raw = (uv_raw + 0.5) / np.array([sx, sy]) - 0.5
-        size = size / np.sqrt(sx * sy)
     response = np.array([k.response for k in kps], np.float64)
-    if len(kps) > config.max_features and config.detector == "orb":  # candidates: spread them
-        keep = spread_keypoints(uv_raw, response, config.max_features, camera.width, camera.height)
-        uv_raw, size, response, desc = uv_raw[keep], size[keep], response[keep], desc[keep]
-    elif len(kps) > config.max_features:  # AKAZE/SURF have no cap of their own
+    if len(kps) > config.max_features:  # AKAZE has no cap of its own
         keep = np.argsort(-response, kind="stable")[: config.max_features]
         uv_raw, size, response, desc = uv_raw[keep], size[keep], response[keep], desc[keep]
     scale = 0.5 * size  # OpenCV's size is a diameter of about 2 sigma (SIFT)

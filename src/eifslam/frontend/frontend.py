@@ -95,7 +95,7 @@ class FrontEnd(FrontEndState, TrackReassociation):
 
     def _make_matcher(self) -> DescriptorMatcher:
         c = self.config
-        return DescriptorMatcher(c.ratio, c.mutual, c.flann_trees, c.flann_checks, c.binary_index)
+        return DescriptorMatcher(c.ratio, c.mutual, c.flann_trees, c.flann_checks)
 
     # ------------------------------------------------------------------ queries
     @property

@@ -10,15 +10,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .config import BINARY_INDEXES
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 __all__ = ["DescriptorIndex", "DescriptorMatcher", "essential_ransac", "homography_ransac"]
-
-#: FLANN LSH index of binary descriptors (the parameters OpenCV's documentation suggests).
-LSH_PARAMS = {"algorithm": 6, "table_number": 6, "key_size": 12, "multi_probe_level": 1}
 
 #: Neighbours searched in a prebuilt index of all rows to find the nearest free ones.
 FREE_SEARCH = 8
@@ -29,12 +25,10 @@ _EMPTY = (np.zeros(0, np.int64), np.zeros(0, np.int64))
 class DescriptorIndex:
     """The descriptors of one keypoint set, prepared once for nearest-neighbour queries.
 
-    Float descriptors (SIFT, SURF) get a FLANN k-d forest, built once (:meth:`build`, or
+    Float descriptors (SIFT) get a FLANN k-d forest, built once (:meth:`build`, or
     on the first query) and kept, so a frame's index serves every query against it (as the
     train set of the next frames' matches and in the mutual checks). Binary descriptors
-    (ORB, AKAZE) are searched exactly by brute force (Hamming), which has nothing to build,
-    or with ``binary="lsh"`` in a FLANN locality-sensitive hashing index (approximate,
-    like the k-d forest).
+    (ORB, AKAZE) are searched exactly by brute force (Hamming), which has nothing to build.
 
     Parameters
     ----------
@@ -42,23 +36,18 @@ class DescriptorIndex:
         ``uint8`` binary or float descriptors.
     trees, checks : int
         FLANN randomised k-d trees (float descriptors) and leaves visited per query.
-    binary : {"bruteforce", "lsh"}
-        Search of binary descriptors.
     """
 
-    def __init__(self, descriptors: NDArray, trees: int = 4, checks: int = 48, binary: str = "bruteforce") -> None:
-        if binary not in BINARY_INDEXES:
-            raise ValueError(f"binary index must be one of {BINARY_INDEXES}, got {binary!r}")
+    def __init__(self, descriptors: NDArray, trees: int = 4, checks: int = 48) -> None:
         self.binary = descriptors.dtype == np.uint8
         self.descriptors = np.ascontiguousarray(descriptors if self.binary else np.asarray(descriptors, np.float32))
         self._trees, self._checks = int(trees), int(checks)
-        self._lsh = self.binary and binary == "lsh"
         self._flann = None
 
     @property
     def prebuilt(self) -> bool:
         """Whether the index has a structure worth keeping (FLANN), rather than a brute-force search."""
-        return self._lsh or not self.binary
+        return not self.binary
 
     def __len__(self) -> int:
         return len(self.descriptors)
@@ -67,8 +56,7 @@ class DescriptorIndex:
         """Build the FLANN index now (else on the first query; nothing for binary descriptors).
         Its random trees are drawn from OpenCV's generator (``cv2.setRNGSeed``)."""
         if self._flann is None and self.prebuilt and len(self.descriptors):
-            params = LSH_PARAMS if self._lsh else {"algorithm": 1, "trees": self._trees}
-            self._flann = cv2.flann_Index(self.descriptors, dict(params))
+            self._flann = cv2.flann_Index(self.descriptors, {"algorithm": 1, "trees": self._trees})
 
     def knn(self, q: NDArray, k: int) -> tuple[IntArray, Array]:
         """The ``k`` nearest indexed descriptors of each query row.
@@ -90,11 +78,7 @@ class DescriptorIndex:
         kk = min(int(k), n)
         if m == 0 or kk == 0:
             return idx, dist
-        if self._lsh:
-            self.build()
-            i, d = self._flann.knnSearch(np.ascontiguousarray(q, np.uint8), kk, params={"checks": self._checks})
-            d = d.astype(np.float64)
-        elif self.binary:
+        if self.binary:
             d, i = cv2.batchDistance(np.ascontiguousarray(q, np.uint8), self.descriptors, cv2.CV_32S,
                                      normType=cv2.NORM_HAMMING, K=kk)
             d = d.astype(np.float64)
@@ -113,7 +97,7 @@ class DescriptorIndex:
 class DescriptorMatcher:
     """Nearest-neighbour descriptor matching with Lowe's ratio test and a mutual check.
 
-    Float descriptors (SIFT, SURF) use a FLANN k-d forest; binary ones (ORB, AKAZE) a
+    Float descriptors (SIFT) use a FLANN k-d forest; binary ones (ORB, AKAZE) a
     brute-force Hamming search (:class:`DescriptorIndex`).
 
     Parameters
@@ -126,13 +110,9 @@ class DescriptorMatcher:
         Randomised k-d trees of the FLANN index (float descriptors).
     checks : int
         Leaves visited per FLANN query.
-    binary_index : {"bruteforce", "lsh"}
-        Search of binary descriptors by :meth:`match` (:class:`DescriptorIndex`).
     """
 
-    def __init__(self, ratio: float = 0.8, mutual: bool = True, trees: int = 4, checks: int = 48,
-                 binary_index: str = "bruteforce") -> None:
-        self.binary_index = str(binary_index)
+    def __init__(self, ratio: float = 0.8, mutual: bool = True, trees: int = 4, checks: int = 48) -> None:
         self.ratio = float(ratio)
         self.mutual = bool(mutual)
         self.trees, self.checks = int(trees), int(checks)
@@ -141,7 +121,7 @@ class DescriptorMatcher:
 
     def index(self, descriptors: NDArray) -> DescriptorIndex:
         """A :class:`DescriptorIndex` of ``descriptors (N, D)`` with this matcher's FLANN settings."""
-        return DescriptorIndex(descriptors, self.trees, self.checks, self.binary_index)
+        return DescriptorIndex(descriptors, self.trees, self.checks)
 
     def knn(self, q: NDArray, t: NDArray, k: int) -> list:
         """The ``k`` nearest descriptors of ``t (N2, D)`` for each of ``q (N1, D)``:

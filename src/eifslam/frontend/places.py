@@ -51,7 +51,7 @@ def _fit_vocabulary(X: NDArray[np.float32], n_words: int, seed: int) -> NDArray[
     (and, when a short run ends first, at exit): with the libraries' own thread counts it
     took 18 s of CPU for 20 castle frames' ORB descriptors on a loaded 2-core machine,
     against 1.7 s in one thread, for the same centres. (The BLAS limit is process-wide
-    while it lasts; the runner holds BLAS to ``system.blas_threads``, 1, anyway.)"""
+    while it lasts; the runner holds BLAS to ``runtime.blas_threads``, 1, anyway.)"""
     from sklearn.cluster import MiniBatchKMeans
     from threadpoolctl import threadpool_limits
 

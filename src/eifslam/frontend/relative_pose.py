@@ -1,14 +1,14 @@
 """Relative pose ``ZR``, ``ZT`` between two frames from their ``Ωp`` correspondences.
 
-Five-point essential matrix in RANSAC and the cheirality test (OpenCV), an optional
+Five-point essential matrix in RANSAC and the cheirality test (OpenCV), a
 Gauss-Newton refinement on the inliers' Sampson error; on a wide pair whose inliers a
 homography mostly explains, the homography's decompositions as further hypotheses (refined
 by Levenberg-Marquardt; one replaces the essential matrix's pose only with significantly
 more inliers, :func:`best_supported_pose`); the inliers that carry much of the pose's
 information checked against the pose the others give (:func:`confirm_leveraged`); on a wide
 pair, the inliers chosen again at the pair's own noise (:func:`tighten_to_noise`); a parallax
-check on the pose that is kept; and the covariance (first order or unscented transform,
-:mod:`eifslam.frontend.uncertainty`). A pixel pair given twice (SIFT's orientation twins) is
+check on the pose that is kept; and the first-order covariance
+(:mod:`eifslam.frontend.uncertainty`). A pixel pair given twice (SIFT's orientation twins) is
 one correspondence.
 """
 
@@ -36,7 +36,7 @@ from .twoview import (
     sampson_jacobian,
     sampson_residuals,
 )
-from .uncertainty import first_order_covariance, is_valid_covariance, unscented_covariance
+from .uncertainty import first_order_covariance, is_valid_covariance
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -164,13 +164,13 @@ def best_supported_pose(
         Their unit bearings, camera frames *i* and *j*.
     K : (3, 3)
     config : FrontEndConfig
-        Uses ``refine``, ``refine_iterations``, ``ransac_threshold_px``, ``min_inliers``.
+        Uses ``refine_iterations``, ``ransac_threshold_px``, ``min_inliers``.
 
     Returns
     -------
     R : (3, 3); t : (3,) unit; inliers : (N,) bool
     """
-    best = _refine(R, t, ui, uj, bi, bj, inl, K, config) if config.refine else (R, t, inl)
+    best = _refine(R, t, ui, uj, bi, bj, inl, K, config)
     if median_parallax_deg(best[0], bi[best[2]], bj[best[2]]) < _PLANE_PARALLAX_DEG:
         return best  # a narrow pair: inlier counts do not tell directions apart
     for Rh, th in _homography_poses(ui, uj, K, config.ransac_threshold_px, int(best[2].sum())):
@@ -185,7 +185,7 @@ def best_supported_pose(
         # points off the plane join the inliers a few at a time): damped steps, more rounds,
         # no step bound, and the test judges
         cand = _refine(Rh, th, ui, uj, bi, bj, inl_h, K, config, np.inf, _CANDIDATE_ROUNDS,
-                       _CANDIDATE_ITERATIONS, _CANDIDATE_DAMPING) if config.refine else (Rh, th, inl_h)
+                       _CANDIDATE_ITERATIONS, _CANDIDATE_DAMPING)
         if _significantly_more(cand[2], best[2]):
             best = cand
     return best
@@ -309,16 +309,6 @@ def tighten_to_noise(
     return R2, t2, kept
 
 
-def _covariance(R, t, ui, uj, K, J, config: FrontEndConfig) -> Array:
-    if config.covariance == "fast":
-        return first_order_covariance(J, config.sigma_px)
-    n = len(ui)
-    m = min(n, config.ut_max_points)
-    sel = np.linspace(0, n - 1, m).round().astype(int)
-    P = unscented_covariance(R, t, ui[sel], uj[sel], K, config.sigma_px)
-    return P * (m / n)
-
-
 def estimate_relative_pose(
     uv_i: Array,
     uv_j: Array,
@@ -336,8 +326,8 @@ def estimate_relative_pose(
         Corresponding undistorted pixels of ``Ωp`` tracks in images *i* and *j*.
     camera : PinholeCamera
     config : FrontEndConfig
-        Uses ``min_common, min_inliers, min_parallax_deg, ransac_*, refine*, sigma_px,
-        covariance, ut_max_points``.
+        Uses ``min_common, min_inliers, min_parallax_deg, ransac_*, refine_iterations,
+        sigma_px``.
     i, j : int
         Frame ids stored in the measurement.
     track_ids : (N,) int64, optional
@@ -384,9 +374,8 @@ def estimate_relative_pose(
     if inl.sum() < config.min_inliers:
         return _fail(Reason.TOO_FEW_INLIERS, n, t0, n_inliers=int(inl.sum()), parallax_deg=residual)
     R, t, inl = best_supported_pose(R, t, inl, ui, uj, bi_all, bj_all, K, config)
-    if config.refine:
-        R, t, inl = confirm_leveraged(R, t, inl, ui, uj, bi_all, bj_all, K, config)
-        R, t, inl = tighten_to_noise(R, t, inl, ui, uj, bi_all, bj_all, K, config)
+    R, t, inl = confirm_leveraged(R, t, inl, ui, uj, bi_all, bj_all, K, config)
+    R, t, inl = tighten_to_noise(R, t, inl, ui, uj, bi_all, bj_all, K, config)
     parallax = median_parallax_deg(R, bi_all[inl], bj_all[inl])
     if parallax < config.min_parallax_deg:
         return _fail(Reason.NO_PARALLAX, n, t0, n_inliers=int(inl.sum()), parallax_deg=parallax)
@@ -396,7 +385,7 @@ def estimate_relative_pose(
     ui, uj = ui[inl], uj[inl]
     J = sampson_jacobian(R, t, ui, uj, K)[1]
     t1 = time.perf_counter()
-    P = _covariance(R, t, ui, uj, K, J, config)
+    P = first_order_covariance(J, config.sigma_px)
     t2 = time.perf_counter()
     timings = {"relative_pose": (t1 - t0) * 1e3, "covariance": (t2 - t1) * 1e3}
     kw = dict(n_common=n, n_inliers=n_in, parallax_deg=parallax, timings_ms=timings,

@@ -235,13 +235,14 @@ class SyntheticFrontEnd:
     def slam_config(self, base=None, **sections: dict[str, Any]):
         """A :class:`~eifslam.system.config.SlamConfig` matched to this simulation.
 
-        ``system.sigma_px`` is the simulated pixel noise and ``system.scale_distance`` the
+        ``frontend.sigma_px`` is the simulated pixel noise and ``tracking.scale_distance`` the
         true distance between scene frames 0 and 1 (the pair that initialises the map when
-        frame 1 has ``init_parallax_deg``), so estimates compare with the truth directly;
-        ``sections`` (e.g. ``system={"min_feature_parallax_deg": 3.0}``) are applied last.
+        frame 1 has ``experimental.init_parallax_deg``), so estimates compare with the truth
+        directly; ``sections`` (e.g. ``mapping={"min_feature_parallax_deg": 3.0}``) are
+        applied last.
         """
         from ..system.config import SlamConfig
 
         base = base or SlamConfig()
-        cfg = base.replace(system={"sigma_px": self.sigma_px, "scale_distance": self.true_distance(0, 1)})
+        cfg = base.replace(frontend={"sigma_px": self.sigma_px}, tracking={"scale_distance": self.true_distance(0, 1)})
         return cfg.replace(**sections) if sections else cfg

@@ -13,7 +13,7 @@
 This layer imports no evaluation, io, cli or plotting code.
 """
 
-from .config import Mode, SlamConfig, SystemConfig
+from .config import Mode, SlamConfig
 from .slam import Slam, TrackingState, TrackResult
 
-__all__ = ["Mode", "Slam", "SlamConfig", "SystemConfig", "TrackResult", "TrackingState"]
+__all__ = ["Mode", "Slam", "SlamConfig", "TrackResult", "TrackingState"]

@@ -7,17 +7,16 @@ through Algorithm 1 (relative pose ``ZR``/``ZT`` to the last keyframes, ``Zm`` f
 features triangulated), when one of these measured quantities says so:
 
 * that localisation failed or fits the map poorly (inlier fraction below
-  ``system.map_inlier_fraction``): the map alone cannot place the frame;
+  ``TrackingConfig.map_inlier_fraction``): the map alone cannot place the frame;
 * the median parallax of the map features it shares with the last keyframe reached
-  ``system.keyframe_parallax`` (by default the parallax a new map feature needs, so that
+  ``SlamConfig.keyframe_parallax`` (by default the parallax a new map feature needs, so that
   tracks first seen at the last keyframe can be triangulated now);
-* it sees fewer than ``system.keyframe_min_tracked`` of the map features the last keyframe
+* it sees fewer than ``KeyframeConfig.min_tracked`` of the map features the last keyframe
   saw (the view moves on);
-* ``system.keyframe_max_interval_s`` seconds passed since the last keyframe.
+* ``keyframes.max_interval_s`` seconds passed since the last keyframe.
 
 Every other frame keeps the map pose and its covariance (given the map, plus the map's own
-uncertainty with ``system.map_pose_uncertainty``)
-(:func:`~eifslam.estimation.localisation.map_pose_covariance`); it is not a state, so the
+uncertainty, :func:`~eifslam.estimation.localisation.map_pose_covariance`); it is not a state, so the
 filter grows with the keyframes only, and the Ωp/Ωm split and the relative poses stay as
 the paper has them, between keyframes. The front end still tracks every frame, so tracks
 run through the frames in between. :meth:`Keyframes.refine` re-localises the frames in
@@ -163,11 +162,6 @@ class Keyframes:
                        for f, r, pp, qq, c, g, k, b, pr, qr in zip(fid, ref, p, q, cov, fig, n_obs, ends, p_rel, q_rel)}
 
     # -- queries ------------------------------------------------------------------
-    @property
-    def enabled(self) -> bool:
-        """Whether frames between keyframes are kept out of the filter."""
-        return bool(self.config.system.keyframes)
-
     def __len__(self) -> int:
         """Number of frames localised on the map (not keyframes)."""
         return len(self._poses)
@@ -195,17 +189,17 @@ class Keyframes:
     def localise(self, k: int, p0: Array, q0: Array) -> MapPose | None:
         """Localise frame *k* on the known map features it sees, from the guess
         ``(p0 (3,), q0 (4,))``; None when there are too few of them or it does not converge."""
-        filt, sysc = self.filter, self.config.system
+        filt, cfg = self.filter, self.config
         if self.last is None or filt.layout.n_features == 0:
             return None
         ids, uv = self.frontend.map_observations(k)
         known = filt.layout.has_features(ids)
-        if known.sum() < sysc.min_map_features:
+        if known.sum() < cfg.tracking.min_map_features:
             return None
         ids, uv = np.asarray(ids, np.int64)[known], uv[known]
         X = filt.x[filt.layout.feature_columns(ids)]
-        sol = localise_pose(self.camera, p0, q0, X, uv, min_inliers=sysc.min_map_features,
-                            inlier_px=sysc.inlier_radius_px, X_cov=lambda idx: filt.feature_covariances(ids[idx]))
+        sol = localise_pose(self.camera, p0, q0, X, uv, min_inliers=cfg.tracking.min_map_features,
+                            inlier_px=cfg.tracking.inlier_radius_px, X_cov=lambda idx: filt.feature_covariances(ids[idx]))
         if sol is None:
             return None
         p, q, inl = sol
@@ -222,10 +216,7 @@ class Keyframes:
     def _map_uncertainty(self, track_ids):
         """``G -> G P_X G^T`` for the map features ``track_ids`` (their joint covariance
         from the filter, :meth:`InformationFilter.feature_propagate`): the map's own
-        uncertainty in a frame's covariance; None when ``system.map_pose_uncertainty`` is
-        off."""
-        if not self.config.system.map_pose_uncertainty:
-            return None
+        uncertainty in a frame's covariance."""
         ids = np.asarray(track_ids, np.int64)
         return lambda G: self.filter.feature_propagate(ids, G)
 
@@ -233,18 +224,18 @@ class Keyframes:
         """Why a frame at ``timestamp`` (s) must be a keyframe whatever it sees (too long
         since the last keyframe), or None."""
         dt = float(timestamp) - self._last_time
-        if dt >= self.config.system.keyframe_max_interval_s:
+        if dt >= self.config.keyframes.max_interval_s:
             return f"{dt:.2g} s since keyframe {self.last}"
         return None
 
     def keyframe_reason(self, mp: MapPose, timestamp: float) -> str | None:
         """Why the frame localised as ``mp`` must become a keyframe, or None when it need not."""
-        sysc = self.config.system
-        if mp.inlier_fraction < sysc.map_inlier_fraction:
+        cfg = self.config
+        if mp.inlier_fraction < cfg.tracking.map_inlier_fraction:
             return f"fits the map poorly ({mp.inlier_fraction:.0%} inliers)"
-        if mp.parallax_deg >= sysc.keyframe_parallax:
+        if mp.parallax_deg >= cfg.keyframe_parallax:
             return f"parallax {mp.parallax_deg:.1f} deg to keyframe {mp.reference}"
-        if mp.tracked_fraction < sysc.keyframe_min_tracked:
+        if mp.tracked_fraction < cfg.keyframes.min_tracked:
             return f"sees {mp.tracked_fraction:.0%} of keyframe {mp.reference}'s map features"
         return self.due(timestamp)
 
@@ -278,19 +269,19 @@ class Keyframes:
         minimum: on kitti-07 one such frame landed 10 m off with 70% of its features
         fitting) and is re-localised on the map observations it was localised on. When
         its features left the map, or the re-localisation does not converge or fits under
-        ``system.map_inlier_fraction`` of them, it keeps the composed pose. Returns the
+        ``TrackingConfig.map_inlier_fraction`` of them, it keeps the composed pose. Returns the
         poses."""
-        filt, sysc = self.filter, self.config.system
+        filt, cfg = self.filter, self.config
         for k, mp in self._poses.items():
             p0, q0 = self.composed(mp)
             mp.p, mp.q = p0, q0
             known = filt.layout.has_features(mp.track_ids)
-            if known.sum() < sysc.min_map_features:
+            if known.sum() < cfg.tracking.min_map_features:
                 continue
             X = filt.x[filt.layout.feature_columns(mp.track_ids[known])]
-            sol = localise_pose(self.camera, p0, q0, X, mp.uv[known], min_inliers=sysc.min_map_features,
-                                inlier_px=sysc.inlier_radius_px)
-            if sol is None or sol[2].mean() < sysc.map_inlier_fraction:
+            sol = localise_pose(self.camera, p0, q0, X, mp.uv[known], min_inliers=cfg.tracking.min_map_features,
+                                inlier_px=cfg.tracking.inlier_radius_px)
+            if sol is None or sol[2].mean() < cfg.tracking.map_inlier_fraction:
                 continue
             cov = map_pose_covariance(self.camera, sol[0], sol[1], X[sol[2]], self.config.zm_sigma_px,
                                       self._map_uncertainty(mp.track_ids[known][sol[2]]))

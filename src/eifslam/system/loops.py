@@ -172,11 +172,11 @@ class LoopCloser:
         self.frontend = frontend
         self.filter = backend
         self.mapper = mapper
-        sysc = config.system
-        self.enabled = bool(sysc.loop_closure) and callable(getattr(frontend, "descriptors", None))
+        cfg = config
+        self.enabled = bool(cfg.loops.enabled) and callable(getattr(frontend, "descriptors", None))
         seed = config.frontend.seed if config.frontend.seed is not None else 0
-        self.index = PlaceIndex(sysc.loop_words, sysc.loop_train_frames, seed=int(seed),
-                               learn_lag=sysc.loop_learn_lag)
+        self.index = PlaceIndex(cfg.loops.words, cfg.experimental.loop_train_frames, seed=int(seed),
+                               learn_lag=cfg.experimental.loop_learn_lag)
         self.closures: list[LoopClosure] = []
         self.rejected: list[tuple[int, int, str]] = []  # (frame, candidate, why) verifications that failed
         self._streak: list[tuple[int, int, int]] = []  # (lo, hi, count) places of the last query
@@ -197,12 +197,12 @@ class LoopCloser:
         if not covis and not hop:
             self._streak = []
             return None
-        sysc = self.config.system
+        cfg = self.config
         oldest = min(self._joined(covis, hop))
         ids = np.array(self.index.frame_ids, np.int64)
         scores = self.index.query(self.index.vector(k))
         pos = {int(f): i for i, f in enumerate(ids)}
-        strong = [f for f, n in covis.items() if n >= sysc.loop_min_inliers and f in pos]
+        strong = [f for f, n in covis.items() if n >= cfg.loops.min_inliers and f in pos]
         if not strong and covis:
             strong = [max(covis)] if max(covis) in pos else []
         if not strong:
@@ -227,7 +227,7 @@ class LoopCloser:
             lo, hi = min(span), max(span)
             n = 1 + max([c for a, b, c in self._streak if a <= hi and lo <= b], default=0)
             streak.append((lo, hi, n))
-            if best is None and n >= sysc.loop_consistency:
+            if best is None and n >= cfg.loops.consistency:
                 best = (j, float(scores[i]), lo, hi)
         self._streak = streak
         if best is None:
@@ -279,7 +279,7 @@ class LoopCloser:
         across a revisit (SIFT keeps some over hundreds of frames) do not join two places:
         the loop they hint at still has to be found and verified. Without any such frame,
         every covisible frame counts (the cautious rule)."""
-        m = self.config.system.loop_min_inliers
+        m = self.config.loops.min_inliers
         joined = {f for f, n in covis.items() if n >= m} | hop
         return joined if joined else set(covis)
 
@@ -287,7 +287,7 @@ class LoopCloser:
         from ..frontend.loop_verification import match_to_frame, match_to_map, verify_place
         from ..geometry.rotations import quat_conjugate, quat_log, quat_multiply, quat_to_rotmat
 
-        filt, fe, sysc = self.filter, self.frontend, self.config.system
+        filt, fe, cfg = self.filter, self.frontend, self.config
         stored = set(fe.frame_ids)
         span, tids, descs = [], [], []
         for f in range(lo, hi + 1):  # the old map features seen around the candidate, with descriptors
@@ -303,7 +303,7 @@ class LoopCloser:
         has = filt.layout.has_features(t_all)
         fids, first = np.unique(t_all[has], return_index=True)  # one descriptor per feature: its first
         keep = ~np.isin(fids, fe.frame(k).track_ids)
-        if keep.sum() < sysc.loop_min_inliers:
+        if keep.sum() < cfg.loops.min_inliers:
             self.rejected.append((k, j, "too few old map features"))
             return None
         fids = fids[keep].astype(np.int64)
@@ -314,12 +314,12 @@ class LoopCloser:
         # here, and the positions of old (marginalised) features need the complete
         # estimate, a back substitution over the whole state
         direct = match_to_frame(self.camera, fe.matcher, dk, fe.descriptors(j), self.config.zm_sigma_px,
-                                sysc.loop_min_inliers, sysc.loop_false_alarm)
+                                cfg.loops.min_inliers, cfg.loops.false_alarm)
         if len(direct[0]) < direct[2]:  # the five-point check would refuse it
             self.rejected.append((k, j, "too few matches to the old frame"))
             return None
         ia, ib, need = match_to_map(self.camera, fe.matcher, dk, D, self.config.zm_sigma_px,
-                                    sysc.loop_min_inliers, sysc.loop_false_alarm)
+                                    cfg.loops.min_inliers, cfg.loops.false_alarm)
         if len(ia) < need:
             self.rejected.append((k, j, "too few matches to the map"))
             return None
@@ -330,8 +330,8 @@ class LoopCloser:
         def verify(f: int, direct_f: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None):
             return verify_place(self.camera, fe.matcher, fk.uv, dk, X, D, fe.frame(f).uv, fe.descriptors(f),
                                 self.config.zm_sigma_px, filt.pose(f)[0], quat_to_rotmat(filt.pose(f)[1]),
-                                max_rot_deg=sysc.agree_rotation_deg, min_parallax_deg=sysc.feature_parallax_deg,
-                                floor=sysc.loop_min_inliers, alpha=sysc.loop_false_alarm, matches=(ia, ib),
+                                max_rot_deg=cfg.tracking.agree_rotation_deg, min_parallax_deg=cfg.mapping.feature_parallax_deg,
+                                floor=cfg.loops.min_inliers, alpha=cfg.loops.false_alarm, matches=(ia, ib),
                                 direct=direct_f)
 
         chk = verify(j, direct[:2])
@@ -357,7 +357,7 @@ class LoopCloser:
         dq = float(np.degrees(np.linalg.norm(quat_log(quat_multiply(quat_conjugate(q_f), chk.q)))))
         obs = FeatureObservations.make(np.full(len(chk.keypoints), k), fids[chk.features], fk.uv[chk.keypoints],
                                        self.config.zm_sigma_px)
-        if sysc.loop_smooth_passes and not self._predicted(obs):
+        if cfg.loops.smooth_passes and not self._predicted(obs):
             # the loop's correction can be far from the linearisation point of the poses it
             # moves (on the loop world 3.8 deg and 1 m after a lap): first move the estimate as a
             # pose graph would (the correction spread along the loop), then fuse the loop and
@@ -368,7 +368,7 @@ class LoopCloser:
             info = filt.information_form()
             correct_loop(info, j, k, chk.p, chk.q)
             fused = info.fuse_features(obs, gate=False)
-            relinearise_all(info, sysc.loop_smooth_passes)
+            relinearise_all(info, cfg.loops.smooth_passes)
             filt.set_from_information_form(info)
             # x is now the full solution; the incremental window is rebuilt at the next step
         else:
@@ -404,7 +404,7 @@ class LoopCloser:
            of the two poses (6 degrees of freedom, same rate) is fused. One that does not
            (a long loop: the position drift of a monocular estimate, scale drift included,
            outgrows its linearised covariance) is held until the next
-           ``loop_consistency - 1`` keyframes verify the same place with loop poses that
+           ``loops.consistency - 1`` keyframes verify the same place with loop poses that
            agree with one another (the same test between consecutive loop frames, whose
            relative pose the estimate knows well), as ORB-SLAM asks a group of consistent
            keyframes before it corrects a loop.
@@ -412,7 +412,7 @@ class LoopCloser:
         from ..estimation.agreement import chi2_quantile, pose_agreement, rotation_agreement
         from ..estimation.localisation import map_pose_covariance
 
-        filt, sysc = self.filter, self.config.system
+        filt = self.filter
         C_m = map_pose_covariance(self.camera, p_m, q_m, X, self.config.zm_sigma_px)
         if C_m is None:
             return "the loop's pose is not determined"
@@ -443,7 +443,7 @@ class LoopCloser:
                 pend = PendingLoop(k, j, p_m, q_m, C_m, 1)
         else:
             pend = PendingLoop(k, j, p_m, q_m, C_m, 1)
-        if pend.count >= max(int(sysc.loop_consistency), 1):
+        if pend.count >= max(int(self.config.loops.consistency), 1):
             self._pending = None
             return ""
         self._pending = pend

@@ -220,7 +220,7 @@ class Mapper:
         """``Zm`` of frame *k* for known features, plus every observation of features that
         can now be triangulated (Algorithm 1 step 3); the new features are added to the
         state."""
-        filt, sysc = self.filter, self.config.system
+        filt, cfg = self.filter, self.config
         known = filt.layout.has_features(ids)
         p_k, q_k = filt.pose(k)
         poses, feats, uvs = [np.full(int(known.sum()), k)], [ids[known]], [uv[known]]
@@ -237,7 +237,7 @@ class Mapper:
             uv_j = np.array([it[1] for it in items])
             uv_k = np.array([it[2] for it in items])
             X, par, ok = triangulate(p_j, q_j, uv_j, p_k, q_k, uv_k, self.camera)
-            for (t, _, u, hist), Xt, good in zip(items, X, ok & (par >= sysc.feature_parallax_deg)):
+            for (t, _, u, hist), Xt, good in zip(items, X, ok & (par >= cfg.mapping.feature_parallax_deg)):
                 if good:
                     tri.append((t, Xt, np.array([jj for jj, _ in hist] + [k]), np.array([vv for _, vv in hist] + [u])))
         if tri:

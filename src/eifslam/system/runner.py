@@ -5,7 +5,7 @@ frame stops the loop; :meth:`Slam.finish` then ends the run as the
 configured mode says, and what was estimated so far is returned. Writing the outputs is
 the caller's job (:func:`eifslam.evaluation.outputs.run_to_folder`).
 
-The front end is pipelined (``config.frontend.prefetch`` frames ahead, 2 by default): a
+The front end is pipelined (``config.runtime.prefetch`` frames ahead, 2 by default): a
 worker thread decodes the next images (``seq.load``) and detects their features
 (``FrontEnd.detect``; OpenCV releases the GIL) while this thread matches, relates and
 fuses the current one. Detection depends on nothing but the image, and everything else
@@ -260,7 +260,7 @@ def run_sequence(seq, config: SlamConfig, max_frames: int | None = None, scale: 
         reported in ``stopped``; the run's outputs are not lost.
     prefetch : int, optional
         Frames decoded and detected ahead in a worker thread (:class:`FramePrefetcher`);
-        0 runs everything in this thread. Default: ``config.frontend.prefetch`` (of the
+        0 runs everything in this thread. Default: ``config.runtime.prefetch`` (of the
         session's config when ``slam`` is given). The results are the same either way.
 
     Returns
@@ -274,7 +274,7 @@ def run_sequence(seq, config: SlamConfig, max_frames: int | None = None, scale: 
     EifslamError
         When ``slam`` was made with another camera than the sequence's.
     """
-    threads = (config if slam is None else slam.config).system.blas_threads
+    threads = (config if slam is None else slam.config).runtime.blas_threads
     with stop_requests(), blas_limit(threads):
         return _run(seq, config, max_frames, scale, quiet, on_frame, slam, save_session, prefetch)
 
@@ -282,7 +282,7 @@ def run_sequence(seq, config: SlamConfig, max_frames: int | None = None, scale: 
 @contextlib.contextmanager
 def blas_limit(threads: int | None) -> Iterator[None]:
     """Hold the BLAS library to ``threads`` threads inside the block (threadpoolctl;
-    ``None``: leave it as it is). See ``SystemConfig.blas_threads``."""
+    ``None``: leave it as it is). See ``runtime.blas_threads``."""
     if threads is None:
         yield
         return
@@ -303,17 +303,17 @@ def _run(seq, config: SlamConfig, max_frames: int | None, scale: tuple | None, q
                                f"source's ({seq.camera})")
         start = resume_index(seq, slam)
     n = len(seq) if max_frames is None else min(len(seq), start + max_frames)
-    depth = int(slam.config.frontend.prefetch if prefetch is None else prefetch)
+    depth = int(slam.config.runtime.prefetch if prefetch is None else prefetch)
     with opencv_threads(opencv_thread_count(slam.config, depth)):
         return _track_all(seq, slam, start, n, depth, scale, quiet, on_frame, save_session)
 
 
 def opencv_thread_count(config: SlamConfig, prefetch: int) -> int | None:
-    """OpenCV's worker threads for a run (``SystemConfig.opencv_threads`` with ``"auto"``
+    """OpenCV's worker threads for a run (``runtime.opencv_threads`` with ``"auto"``
     resolved: 1 when detection runs in a prefetch worker, ``prefetch > 0``, and the
     tracking thread searches descriptors with FLANN, which is serial; else None, OpenCV's
     own setting)."""
-    v = config.system.opencv_threads
+    v = config.runtime.opencv_threads
     if v != "auto":
         return v
     return 1 if prefetch > 0 and config.frontend.flann_search else None
@@ -361,7 +361,7 @@ def _track_all(seq, slam: Slam, start: int, n: int, depth: int, scale: tuple | N
             print(f"eifslam: session not saved: {exc}", file=sys.stderr)
     # after Ctrl-C the user wants out: no retrying of lost frames, only the mode's step
     fin = slam.finish(retry=stopped is None or stopped.startswith("stopped"),
-                      images=seq.load if slam.config.system.wide_baseline else None)
+                      images=seq.load if slam.config.experimental.wide_baseline else None)
     if fin.retry_error is not None:
         print(f"eifslam: retrying lost frames failed ({fin.retry_error})", file=sys.stderr)
     for msg in fin.failures:  # the filter's estimate is kept rather than the run lost

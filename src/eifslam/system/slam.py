@@ -50,7 +50,7 @@ class Slam:
     ----------
     camera : PinholeCamera
     config : SlamConfig, optional
-        Every setting is honoured, ``system.mode`` included (by :meth:`finish`).
+        Every setting is honoured, ``smoothing.mode`` included (by :meth:`finish`).
     frontend : object, optional
         What turns an image into ``Zm`` and ``ZR``/``ZT`` (default: the OpenCV
         :class:`~eifslam.frontend.FrontEnd` made from ``config.frontend``). Any object with
@@ -58,7 +58,7 @@ class Slam:
         simulated measurements through the same Algorithm 1.
     backend : object, optional
         The estimator (default: the :class:`~eifslam.estimation.filter.InformationFilter`
-        made from ``config.filter`` and ``config.system``).
+        made from ``config.filter`` and ``config.experimental``).
     """
 
     def __init__(self, camera: PinholeCamera, config: SlamConfig | None = None, *,
@@ -71,7 +71,7 @@ class Slam:
             frontend = FrontEnd(camera, self.config.frontend)
         self.frontend = frontend
         self.filter = backend if backend is not None else InformationFilter(
-            camera, self.config.filter, recovery=self.config.system.recovery, window=self.config.system.window)
+            camera, self.config.filter, recovery=self.config.experimental.recovery, window=self.config.experimental.window)
         self.mapper = Mapper(camera, self.config, self.frontend, self.filter)
         self.tracker = Tracker(camera, self.config, self.frontend, self.filter, self.mapper)
         self.keyframes = Keyframes(camera, self.config, self.frontend, self.filter)
@@ -149,7 +149,7 @@ class Slam:
         self._timestamps[k] = ts
         if fr.n_features == 0 and not fr.ok:
             return self._record(TrackResult(k, ts, self._lost_state(), reason=fr.reason, timings_ms=timings), t0)
-        if self.keyframes.enabled and self.filter.layout.n_poses >= 2 and not self._waiting:
+        if self.filter.layout.n_poses >= 2 and not self._waiting:
             res = self._between_keyframes(k, ts, timings)
             if res is not None:
                 return self._record(res, t0)
@@ -242,7 +242,7 @@ class Slam:
             res = self._map_result(mp, res.timestamp, f"{self._keyframe_why}; {res.reason}; kept its map pose",
                                    res.timings_ms)
         self.results.append(res)
-        if self.keyframes.enabled and res.keyframe and res.position is not None \
+        if res.keyframe and res.position is not None \
                 and self.filter.layout.has_pose(res.frame_id):
             self.keyframes.note_keyframe(res.frame_id, res.timestamp)
         if res.position is None and res.state is TrackingState.INITIALISING and res.frame_id > 0:
@@ -270,7 +270,7 @@ class Slam:
     def retry_lost(self, max_passes: int = 3, images: Callable[[int], np.ndarray] | None = None) -> int:
         """Give every frame without a pose one more chance against the final map (an
         offline step, the first of :meth:`finish`): frames lost on the way, and frames
-        that waited for the first baseline. With ``system.wide_baseline`` and ``images``
+        that waited for the first baseline. With ``experimental.wide_baseline`` and ``images``
         (frame id -> the image given to :meth:`track`), the frames still without a pose
         are then matched with affine-simulated features to their nearest known frames
         (:func:`~.wide.retry_wide`) and the rest retried once they are placed. Returns
@@ -279,8 +279,8 @@ class Slam:
         if self.filter.layout.n_poses < 2:
             return 0
         added += self.retry_passes(max_passes, first_map_only=True)
-        sysc = self.config.system
-        if images is not None and sysc.wide_baseline:
+        cfg = self.config
+        if images is not None and cfg.experimental.wide_baseline:
             wide = retry_wide(self, images)
             added += wide + (self.retry_passes(max_passes, first_map_only=False) if wide else 0)
         return added
@@ -297,12 +297,12 @@ class Slam:
         if self.filter.layout.n_poses < 2:
             raise EifslamError("nothing to smooth: fewer than two poses are tracked")
         self.filter.complete_estimate()
-        sysc = self.config.system
-        gates = dict(feature_chi2=self.filter.config.gate_chi2, relative_chi2=sysc.relative_gate_chi2) \
-            if sysc.robust_smoothing else {}
+        cfg = self.config
+        gates = dict(feature_chi2=self.filter.config.gate_chi2, relative_chi2=cfg.experimental.relative_gate_chi2) \
+            if cfg.experimental.robust_smoothing else {}
         info = self.filter.information_form()
-        self.smoothing = smooth(info, max_passes or sysc.smooth_passes,
-                                estimate_noise=sysc.smoothing_noise_estimate, **gates)
+        self.smoothing = smooth(info, max_passes or cfg.experimental.smooth_passes,
+                                estimate_noise=cfg.experimental.noise_estimate, **gates)
         self.filter.set_from_information_form(info)
         self.refine_between_keyframes()
         return self.smoothing
@@ -318,11 +318,11 @@ class Slam:
         return self.bundle_adjustment
 
     def finish(self, retry: bool = True, images: Callable[[int], np.ndarray] | None = None) -> FinishReport:
-        """End a run as ``system.mode`` says (what ``eifslam run`` does after the last image).
+        """End a run as ``smoothing.mode`` says (what ``eifslam run`` does after the last image).
 
         First every frame without a pose gets one more chance (:meth:`retry_lost`, unless
         ``retry`` is False; ``images`` as there: frame id -> image, for the wide-baseline
-        matching of ``system.wide_baseline``); then mode ``smooth`` smooths (:meth:`smooth`) and mode ``ba``
+        matching of ``experimental.wide_baseline``); then mode ``smooth`` smooths (:meth:`smooth`) and mode ``ba``
         bundle-adjusts (:meth:`bundle_adjust`); mode ``filter`` keeps the filter's
         estimate. A step that fails is recorded in the report and the estimate so far is
         kept (the run is not lost).
@@ -335,7 +335,7 @@ class Slam:
                 rep.retry_error = str(exc)
         if self.filter.layout.n_poses < 2:
             return rep
-        mode = Mode(self.config.system.mode)
+        mode = Mode(self.config.smoothing.mode)
         refined = False  # smooth() and bundle_adjust() re-localise the frames between keyframes
         if mode is Mode.SMOOTH:
             try:

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..estimation.initialisation import pose_from_relative
-from ..estimation.localisation import localise_pose, map_pose_covariance, map_pose_sensitivity
+from ..estimation.localisation import localise_pose
 from ..estimation.measurements import pack_relative, unpack_relative
 from ..estimation.statedict import sub, take_float
 from ..frontend.results import RelativePoseResult
@@ -57,57 +57,15 @@ def agrees(p_i: Array, p_k: Array, q_k: Array, sol, max_rot_deg: float, max_dir_
     return bool(rot <= max_rot_deg and cosang >= np.cos(np.radians(max_dir_deg)) and inl.mean() >= 0.5)
 
 
-def relative_gate_statistic(filt, rp, cov_j: Array | None, poses: bool = True,
-                            map_sensitivity: tuple[Array, Array, NDArray[np.int64]] | None = None) -> float:
-    """Normalised innovation squared of a ``ZR``/``ZT`` against its innovation covariance.
+def relative_gate_statistic(filt, rp) -> float:
+    """Normalised innovation squared of a ``ZR``/``ZT`` against its own covariance ``R``
+    (5 DOF), at the filter's current estimate of the two poses.
 
-    ``S = R + J_i P_i J_i^T + J_j P_j J_j^T``: the measurement's covariance plus the
-    uncertainty of the two poses it is tested against, pose *i* from the filter (marginal)
-    and pose *j* as localised on the map (``cov_j``, 6x6 ``[p, dtheta]``; None leaves it
-    out). Testing against ``R`` alone refuses correct measurements whenever the poses are
-    less certain than the measurement, and keeps only those that agree with the current
-    estimate: the filter then confirms itself and grows overconfident. ``poses=False``
-    gives the statistic against ``R`` alone (the system's default gate,
-    ``system.relative_gate_pose_uncertainty``).
-
-    The two marginals leave out that pose *j* was localised on map features that pose *i*
-    helped to place: both carry the same drift, which a relative pose cannot see. With
-    ``map_sensitivity = (C_j, A_j, ids)`` (pose *j*'s covariance given the map, its
-    sensitivity ``A_j`` to the features ``ids`` it was localised on, as
-    :func:`~eifslam.estimation.localisation.map_pose_sensitivity` gives them) the
-    prediction's error is ``J_i dx_i + J_j (A_j dX + e_j)``, and ``S = R + J_j C_j J_j^T +
-    G P G^T`` with ``G = [J_i, J_j A_j]`` and ``P`` the joint covariance of pose *i* and
-    the features (:meth:`InformationFilter.propagate`): the relative uncertainty, not the
-    absolute one. When the filter does not have that joint covariance cheaply (pose *i*
-    outside the incremental window), the statistic is against ``R`` alone.
+    The poses' uncertainty is left out: adding it admits wrong relative poses on real
+    images, whose stated pixel noise is several times the true one.
     """
-    from ..geometry.rotations import quat_left_matrix
-
-    _, J, W, innov = filt.linearise_relative([rp])
-    if not poses:  # the measurement's covariance alone (system.relative_gate_pose_uncertainty off)
-        return float(innov[0] @ W[0] @ innov[0])
-    S = np.linalg.inv(W[0])
-
-    def tangent(fid: int) -> Array:
-        E = np.zeros((7, 6))  # [dp, dtheta] -> [dp, dq], dq = q ⊗ [0, dtheta / 2]
-        E[:3, :3] = np.eye(3)
-        E[3:, 3:] = 0.5 * quat_left_matrix(filt.pose(fid)[1])[:, 1:]
-        return E
-
-    if map_sensitivity is not None:
-        C_j, A_j, ids = map_sensitivity
-        Jj = J[0][:, 7:14] @ tangent(rp.j)
-        M = filt.propagate([rp.i], ids, np.concatenate([J[0][:, :7], Jj @ A_j], 1))
-        if M is None or not np.all(np.isfinite(M)):
-            return float(innov[0] @ W[0] @ innov[0])
-        S = S + Jj @ C_j @ Jj.T + M
-        return float(innov[0] @ np.linalg.solve(S, innov[0]))
-    for blk, fid, C in ((slice(0, 7), rp.i, filt.pose_covariance(rp.i)), (slice(7, 14), rp.j, cov_j)):
-        if C is None:
-            continue
-        Jt = J[0][:, blk] @ tangent(fid)
-        S += Jt @ C @ Jt.T
-    return float(innov[0] @ np.linalg.solve(S, innov[0]))
+    _, _, W, innov = filt.linearise_relative([rp])
+    return float(innov[0] @ W[0] @ innov[0])
 
 
 def inlier_fraction(camera: PinholeCamera, p: Array, q: Array, X: Array, uv: Array, px: float) -> float:
@@ -144,7 +102,7 @@ class Tracker:
         self.filter = backend
         self.mapper = mapper
         self.rejected_relative: list = []
-        self._last_step = config.system.scale_distance
+        self._last_step = config.tracking.scale_distance
 
     # -- sessions -----------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -177,15 +135,15 @@ class Tracker:
         last : RelativePoseResult or None
             The last one tried (its ``reason`` says why tracking failed).
         """
-        sysc = self.config.system
+        cfg = self.config
         known = self.nearest_known(k)
-        n = sysc.reference_candidates
+        n = cfg.tracking.reference_candidates
         if relocalise:
-            older = known[n: n + sysc.relocalise_candidates]
+            older = known[n: n + cfg.tracking.relocalise_candidates]
             if not older:
                 return None, None
             matches = self.frontend.relocalise(k, older)
-            group = [c for c, m in sorted(matches, key=lambda cm: -cm[1]) if m > 0][: sysc.relocalise_top]
+            group = [c for c, m in sorted(matches, key=lambda cm: -cm[1]) if m > 0][: cfg.tracking.relocalise_top]
         else:
             group = known[:n] + [known[i] for i in (2 * n, 4 * n) if i < len(known)]
         last = None
@@ -194,7 +152,7 @@ class Tracker:
             timings["relative_pose"] = timings.get("relative_pose", 0.0) + r.timings_ms.get("relative_pose", 0.0)
             timings["covariance"] = timings.get("covariance", 0.0) + r.timings_ms.get("covariance", 0.0)
             last = r
-            if r.ok and self.filter.layout.n_poses == 1 and r.parallax_deg < sysc.init_parallax_deg:
+            if r.ok and self.filter.layout.n_poses == 1 and r.parallax_deg < cfg.experimental.init_parallax_deg:
                 continue  # too narrow a baseline to initialise the map on
             if r.ok:
                 return r, r
@@ -220,14 +178,14 @@ class Tracker:
         False when there are too few of them or the pose does not converge.
 
         ``guess`` (position, ``q_wc``) starts the localisation (default: the nearest
-        known pose); ``min_features`` overrides ``system.min_map_features``;
+        known pose); ``min_features`` overrides ``TrackingConfig.min_map_features``;
         ``recover=False`` fuses without the recovery (the caller recovers once)."""
         filt = self.filter
         if filt.layout.n_poses < 2 or filt.layout.n_features == 0:
             return False
         t0 = time.perf_counter()
         known, X, uv, map_cov, _ = self._known_map(k)
-        n_min = self.config.system.min_map_features if min_features is None else int(min_features)
+        n_min = self.config.tracking.min_map_features if min_features is None else int(min_features)
         if known.sum() < n_min:
             return False
         p0, q0 = filt.pose(self.nearest_known(k)[0]) if guess is None else guess
@@ -245,17 +203,17 @@ class Tracker:
         """Algorithm 1 for frame *k* related to a known pose by ``rpr``: initial guesses,
         augment with zeros, fuse ``ZR``/``ZT`` (unless gated out) and ``Zm``, recover
         (unless ``recover`` is False: the caller recovers once)."""
-        filt, sysc = self.filter, self.config.system
+        filt, cfg = self.filter, self.config
         rp = rpr.measurement
         t0 = time.perf_counter()
-        known, Xk, uvk, map_cov, ids_k = self._known_map(k)
+        known, Xk, uvk, map_cov, _ = self._known_map(k)
         p_i, q_i = filt.pose(rp.i)
         first_step = filt.layout.n_poses == 1
         init = pose_from_relative(p_i, q_i, rp, self.camera, Xk, uvk,
-                                  default_step=sysc.scale_distance if first_step else self._last_step)
+                                  default_step=cfg.tracking.scale_distance if first_step else self._last_step)
         p_k, q_k, step = init
-        use_relative, refined, cov_k, inl = True, False, None, None
-        if known.sum() >= sysc.min_map_features:  # a better linearisation point: refine on the known map
+        use_relative, refined = True, False
+        if known.sum() >= cfg.tracking.min_map_features:  # a better linearisation point: refine on the known map
             sol = localise_pose(self.camera, p_k, q_k, Xk, uvk, X_cov=map_cov)
             if sol is None:  # the map does not converge from the relative pose's guess: from the
                 # nearest known pose, as a frame without a relative pose (ORB kitti-07: a guess
@@ -263,35 +221,27 @@ class Tracker:
                 p0, q0 = filt.pose(self.nearest_known(k)[0])
                 sol = localise_pose(self.camera, p0, q0, Xk, uvk, X_cov=map_cov)
             frac = sol[2].mean() if sol is not None else 0.0
-            if sol is not None and agrees(p_i, p_k, q_k, sol, max_rot_deg=sysc.agree_rotation_deg,
-                                          max_dir_deg=sysc.agree_direction_deg):
-                p_k, q_k, refined, inl = sol[0], sol[1], frac >= sysc.map_inlier_fraction, sol[2]
-            elif sol is not None and frac > sysc.contradiction_ratio * inlier_fraction(
-                    self.camera, p_k, q_k, Xk, uvk, sysc.inlier_radius_px):
+            if sol is not None and agrees(p_i, p_k, q_k, sol, max_rot_deg=cfg.tracking.agree_rotation_deg,
+                                          max_dir_deg=cfg.tracking.agree_direction_deg):
+                p_k, q_k, refined = sol[0], sol[1], frac >= cfg.tracking.map_inlier_fraction
+            elif sol is not None and frac > cfg.tracking.contradiction_ratio * inlier_fraction(
+                    self.camera, p_k, q_k, Xk, uvk, cfg.tracking.inlier_radius_px):
                 # the map contradicts this relative pose: trust the map, drop the ZR/ZT
                 p_k, q_k, use_relative = sol[0], sol[1], False
                 self.rejected_relative.append(rp)
-            elif sol is not None and frac >= sysc.map_inlier_fraction:
+            elif sol is not None and frac >= cfg.tracking.map_inlier_fraction:
                 # the map fits well where the relative pose points elsewhere (on a short
                 # baseline both guesses fit the map): linearise at the map's pose and let
                 # the chi-square gate below decide on the ZR/ZT
-                p_k, q_k, refined, inl = sol[0], sol[1], True, sol[2]
+                p_k, q_k, refined = sol[0], sol[1], True
         self.mapper.reobserve(k, p_k, q_k)
         filt.add_pose(k, p_k, q_k)
         if first_step:
-            filt.set_scale(rp.i, k, sysc.scale_distance)
+            filt.set_scale(rp.i, k, cfg.tracking.scale_distance)
         self._last_step = step if step > 0 else self._last_step
-        if use_relative and refined and sysc.relative_gate_chi2 is not None:
-            # ZR/ZT against the pose the map supports, with both poses' uncertainty: an
-            # inconsistent one is not fused
-            mode, sens = sysc.relative_gate_pose_uncertainty, None
-            if mode is True and inl is not None:
-                cov_k = map_pose_covariance(self.camera, p_k, q_k, Xk[inl], self.config.zm_sigma_px)
-            elif mode == "joint" and inl is not None:
-                out = map_pose_sensitivity(self.camera, p_k, q_k, Xk[inl], self.config.zm_sigma_px)
-                sens = None if out is None else (*out, ids_k[inl])
-            marginals = mode is True or (mode == "joint" and sens is not None)
-            if relative_gate_statistic(filt, rp, cov_k, marginals, sens) > sysc.relative_gate_chi2:
+        if use_relative and refined and cfg.experimental.relative_gate_chi2 is not None:
+            # ZR/ZT against the pose the map supports: an inconsistent one is not fused
+            if relative_gate_statistic(filt, rp) > cfg.experimental.relative_gate_chi2:
                 use_relative = False
                 self.rejected_relative.append(rp)
         if use_relative:
@@ -340,11 +290,10 @@ class Tracker:
     def place_wide(self, j: int, wide, timings: dict[str, float]) -> tuple[bool, int | None]:
         """Localise an earlier frame *j* that has no pose from wide-baseline matches to a
         known frame (:class:`~eifslam.frontend.wide.WideMatch`): on the known map features
-        their joined tracks made visible (at least ``system.min_map_features`` from the
-        nearest known pose, else ``system.wide_baseline_min_map_features`` from the
-        relative pose of the matches). That relative pose is fused only with
-        ``system.wide_baseline_relative`` (with a narrow field of view it is poorly
-        conditioned: 7 degrees off on templering). The step length is left as it was, as
+        their joined tracks made visible (at least ``TrackingConfig.min_map_features`` from the
+        nearest known pose, else ``ExperimentalConfig.wide_baseline_min_map_features`` from the
+        relative pose of the matches). That relative pose is never fused (with a narrow
+        field of view it is poorly conditioned: 7 degrees off on templering). The step length is left as it was, as
         in :meth:`place_late`. Raises :class:`~eifslam.errors.EstimatorError` as
         :meth:`localise_and_fuse` does.
 
@@ -372,12 +321,7 @@ class Tracker:
             p_i, q_i = self.filter.pose(wide.reference)
             p_k, q_k, _ = pose_from_relative(p_i, q_i, rpr.measurement, self.camera, Xk, uvk,
                                              default_step=self._last_step)
-            n_min = self.config.system.wide_baseline_min_map_features
-            if self.localise_from_map(j, timings, guess=(p_k, q_k), min_features=n_min):
-                return True, None
-            if not self.config.system.wide_baseline_relative:
-                return False, None
-            self.localise_and_fuse(j, rpr, timings)
-            return True, wide.reference
+            n_min = self.config.experimental.wide_baseline_min_map_features
+            return self.localise_from_map(j, timings, guess=(p_k, q_k), min_features=n_min), None
         finally:
             self._last_step = last_step

@@ -1,5 +1,5 @@
 """Placing the frames a run left without a pose by wide-baseline matching (the offline
-part of :meth:`~eifslam.system.slam.Slam.retry_lost` with ``system.wide_baseline``).
+part of :meth:`~eifslam.system.slam.Slam.retry_lost` with ``experimental.wide_baseline``).
 
 The front end's :class:`~eifslam.frontend.wide.WideBaselineMatcher` matches two images
 with affine-simulated features (ASIFT); this module chooses which frames to match and how
@@ -19,7 +19,7 @@ def retry_wide(slam, images: Callable[[int], np.ndarray], max_rounds: int = 3) -
     """Place frames without a pose from wide-baseline matches; how many it placed.
 
     The frames without a pose, in frame order, are matched with affine-simulated
-    features to their ``system.wide_baseline_references`` nearest known frames (joining
+    features to their ``ExperimentalConfig.wide_baseline_references`` nearest known frames (joining
     the tracks both ends of a match land on). The first placed is localised on the known
     map features it now sees, starting from the relative pose of its best matches
     (:meth:`~eifslam.system.tracking.Tracker.place_wide`). Each later one is matched to
@@ -43,13 +43,13 @@ def retry_wide(slam, images: Callable[[int], np.ndarray], max_rounds: int = 3) -
     """
     from ..frontend.wide import WideBaselineMatcher
 
-    sysc = slam.config.system
-    matcher = WideBaselineMatcher(slam.camera, slam.frontend.config, sysc.wide_baseline_max_tilt)
+    cfg = slam.config
+    matcher = WideBaselineMatcher(slam.camera, slam.frontend.config, cfg.experimental.wide_baseline_max_tilt)
     added, anchor = 0, None
     for _ in range(max_rounds):
         placed = 0
         for j in slam.untracked():
-            refs = slam.tracker.nearest_known(j)[: sysc.wide_baseline_references]
+            refs = slam.tracker.nearest_known(j)[: cfg.experimental.wide_baseline_references]
             refs += [anchor] if anchor is not None and anchor not in refs else []
             wides = [matcher.relate(slam.frontend, ref, j, images) for ref in refs]
             best = max(wides, key=lambda w: len(w.uv))
