@@ -178,7 +178,7 @@ def test_run_all_smoke(tmp_path):
 
 def test_run_all_refuses_a_bad_config_file(tmp_path, capsys):
     cfg = tmp_path / "bad.yaml"
-    cfg.write_text("filter:\n  no_such_setting: 1\n")
+    cfg.write_text("mapping:\n  no_such_setting: 1\n")
     rc = run_all.main(["--data", str(tmp_path), "--out", str(tmp_path / "out"), "--only", "builtin",
                        "--config", str(cfg)])
     assert rc == 2 and not (tmp_path / "out" / "results.json").exists()

@@ -243,6 +243,10 @@ class DenseEKF:
         """Nothing is marginalised: ``x``."""
         return self.x
 
+    def recent_estimate(self, steps: int) -> Array:
+        """Nothing is marginalised: ``x``."""
+        return self.x
+
     def set_estimate(self, x: Array) -> None:
         """Replace the mean by ``x`` ``(dim,)`` (e.g. a bundle adjustment's); ``P`` is kept."""
         x = np.asarray(x, float)

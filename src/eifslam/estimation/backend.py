@@ -103,6 +103,11 @@ class Backend(Protocol):
         """Bring every state to the current solution; returns ``x``."""
         ...
 
+    def recent_estimate(self, steps: int) -> Array:
+        """Bring the states of about the last ``steps`` keyframes to the current solution,
+        at a cost that does not grow with the map; returns ``x``."""
+        ...
+
     def set_estimate(self, x: Array) -> None:
         """Replace the estimate by ``x (dim,)`` (e.g. a bundle adjustment's)."""
         ...
