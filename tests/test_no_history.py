@@ -35,20 +35,12 @@ SELF = Path(__file__).resolve()
 
 SUFFIXES = {".py", ".md", ".txt", ".toml", ".cfg", ".yaml", ".yml", ".j2", ".html", ".rst"}
 
-#: The settings modules, whose docstrings are being rewritten with the settings themselves:
-#: checked with the docs until that lands, then with the rest of ``src/``.
-SETTINGS_MODULES = tuple(ROOT / "src" / "eifslam" / p for p in (
-    "system/config.py", "frontend/config.py", "estimation/options.py", "cli/config.py"))
-
-
 def _files(group: str) -> list[Path]:
     if group == "docs":
         return [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-    if group == "settings":
-        return list(SETTINGS_MODULES)
     files = sorted(p for p in (ROOT / group).rglob("*")
                    if p.is_file() and p.suffix in SUFFIXES and "__pycache__" not in p.parts)
-    return [p for p in files if p not in SETTINGS_MODULES]
+    return files
 
 
 def history_lines(paths: list[Path]) -> list[str]:
@@ -89,15 +81,7 @@ def test_the_patterns_catch_history_and_spare_the_code():
     assert not [line for line in clean for p in PATTERNS.values() if p.search(line)]
 
 
-@pytest.mark.parametrize("group", ["src", "benchmarks"])
-def test_code_has_no_history(group):
+@pytest.mark.parametrize("group", ["src", "benchmarks", "tests", "docs"])
+def test_no_history(group):
     found = history_lines(_files(group))
-    assert not found, "history in the code:\n" + "\n".join(found)
-
-
-@pytest.mark.xfail(strict=False, reason="README, docs/, tests/ and the settings modules are being rewritten "
-                                        "as a reference; this becomes a hard test once that lands")
-@pytest.mark.parametrize("group", ["docs", "tests", "settings"])
-def test_docs_and_tests_have_no_history(group):
-    found = history_lines(_files(group))
-    assert not found, "history in the docs and tests:\n" + "\n".join(found)
+    assert not found, f"history in {group}:\n" + "\n".join(found)
