@@ -16,8 +16,6 @@ Priors and pseudo-measurements are stored with the measurements, so smoothing
 
 from __future__ import annotations
 
-from contextlib import nullcontext
-
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
@@ -27,20 +25,20 @@ from ..geometry.camera import PinholeCamera
 from ..geometry.rotations import quat_normalize
 from . import factors
 from .factors import Linearised
-from .filter_recovery import WindowRecoveryMixin
-from .filter_session import FilterSessionMixin
-from .incremental import IncrementalRecovery, TrackedInformationStore
-from .information import InformationStore
-from .measurements import FeatureObservations, MeasurementStore, PriorStore, RelativePose
+from .incremental import IncrementalRecovery
+from .measurements import (FeatureObservations, MeasurementStore, PriorStore, RelativePose, pack_features,
+                           pack_relative, unpack_features, unpack_relative)
 from .options import WINDOW, FilterConfig, FirstEstimates, Recovery
 from .recovery import SchurFactor, factorize
+from .recovery_modes import FullRecovery, RecoveryMode, WindowRecovery
 from .relinearisation import OnlineRelinearisation
+from .statedict import check_index, sub, take, take_float, take_ids, take_int
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout, pose_tangent_covariance, read_features, read_pose, read_poses  # noqa: F401
 
 Array = NDArray[np.float64]
 
 
-class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
+class InformationFilter:
     """Exactly sparse EIF over camera poses and map features.
 
     Satisfies :class:`~eifslam.estimation.backend.Backend` (as does the dense EKF
@@ -51,42 +49,48 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
     camera : PinholeCamera
         Intrinsics used by ``Zm`` (pixels are undistorted).
     config : FilterConfig
-    recovery : Recovery or {"incremental", "full"}
-        What :meth:`recover_active` (the per-frame recovery) does: solve exactly an active
-        window of recent states and marginalise the rest (:mod:`eifslam.estimation.incremental`;
-        default, constant time per frame during an exploration, see ``docs/backend.md``),
-        or solve the whole system (:meth:`recover`). :meth:`recover` is always the full
-        solve; :meth:`complete_estimate` back-substitutes the marginalised states.
+    recovery : RecoveryMode or Recovery or {"incremental", "full"}
+        What :meth:`recover_active` (the per-keyframe recovery) does, as an object
+        (:mod:`~eifslam.estimation.recovery_modes`): ``"incremental"``
+        (:class:`~eifslam.estimation.recovery_modes.WindowRecovery`, the default) solves an
+        active window of recent states exactly and marginalises the rest, at a cost bounded
+        by the window; ``"full"`` (:class:`~eifslam.estimation.recovery_modes.FullRecovery`)
+        solves the whole system. :meth:`recover` is always the full solve;
+        :meth:`complete_estimate` back-substitutes the marginalised states.
     window : int
-        Incremental recovery only: steps without a measurement before a state leaves the
+        With ``"incremental"``: steps without a measurement before a state leaves the
         active window (:data:`~eifslam.estimation.options.WINDOW` by default).
     """
 
     def __init__(
         self, camera: PinholeCamera, config: FilterConfig | None = None,
-        recovery: Recovery | str = Recovery.INCREMENTAL, window: int = WINDOW,
+        recovery: RecoveryMode | Recovery | str = Recovery.INCREMENTAL, window: int = WINDOW,
     ) -> None:
         self.camera = camera
         self.config = config or FilterConfig()
         self.layout = StateLayout()
-        self.info = InformationStore()
         self.store = MeasurementStore()
         self.priors = PriorStore()
         self._x = np.zeros(64)
         self._xfe = np.zeros(64)  # first estimates (config.first_estimate_jacobians)
         self._factor: SchurFactor | None = None
-        # -- incremental recovery hook (eifslam.estimation.incremental) --
-        self.recovery = Recovery.parse(recovery, "recovery")
-        self.incremental: IncrementalRecovery | None = None
-        if self.recovery == Recovery.INCREMENTAL:
-            self.incremental = IncrementalRecovery(window, window)
-            self.info = TrackedInformationStore()
-            self.info.listeners.append(self.incremental)
-        # -- end incremental recovery hook --
-        self.online: OnlineRelinearisation | None = None  # eifslam.estimation.relinearisation
-        if self.incremental is not None and self.config.relinearise_threshold is not None:
-            self.online = OnlineRelinearisation(self.config.relinearise_threshold, self.config.relinearise_budget)
-            self.info.listeners.append(self.online)
+        if not isinstance(recovery, RecoveryMode):
+            online = None if self.config.relinearise_threshold is None else \
+                OnlineRelinearisation(self.config.relinearise_threshold, self.config.relinearise_budget)
+            recovery = WindowRecovery(window, online) if Recovery.parse(recovery, "recovery") == Recovery.INCREMENTAL \
+                else FullRecovery()
+        self.recovery: RecoveryMode = recovery
+        self.info = recovery.information_store()
+
+    @property
+    def incremental(self) -> IncrementalRecovery | None:
+        """The incremental recovery's window (its statistics, for inspection), or None."""
+        return self.recovery.incremental
+
+    @property
+    def online(self) -> OnlineRelinearisation | None:
+        """The online relinearisation (``config.relinearise_threshold``), or None."""
+        return self.recovery.online
 
     # -- pickling -----------------------------------------------------------------------
     def __getstate__(self) -> dict:
@@ -95,10 +99,9 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         estimate (marginalised states back-substituted); this filter is not changed."""
         state = self.__dict__.copy()
         state["_factor"] = None
-        if self.incremental is not None and self.incremental.valid:
-            x = self._x.copy()
-            self.incremental.full_solution(x[: self.dim])
-            state["_x"] = x
+        x = self._x.copy()
+        self.recovery.complete(self, x[: self.dim])
+        state["_x"] = x
         return state
 
     def __setstate__(self, state: dict) -> None:
@@ -230,10 +233,10 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
     def add_information(self, idx, Lam: Array, eta: Array, measurement: bool = True) -> None:
         """Add blocks ``Lam (N, k, k)`` to ``I`` and ``eta (N, k)`` to ``i`` at ``idx (N, k)``;
         ``measurement=False``: a correction (relinearisation), the states age as untouched."""
-        if measurement or self.incremental is None:
+        if measurement:
             self.info.add(idx, Lam, eta)
         else:
-            with self.incremental.not_measuring():
+            with self.recovery.corrections():
                 self.info.add(idx, Lam, eta)
         self._factor = None
 
@@ -328,6 +331,10 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
             self._factor = self.factorize(self.info.matrix_csr())
         return self._factor
 
+    def cached_factor(self) -> SchurFactor | None:
+        """The factorisation of ``I`` if one is cached (None: none since ``I`` changed)."""
+        return self._factor
+
     def invalidate(self) -> None:
         """Drop the cached factorisation: ``I`` or ``i`` were changed from outside
         (e.g. through ``info.set``) or the caller wants covariances refactorised."""
@@ -354,7 +361,7 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         self.first_estimates[:] = self.x
         self.info.reset()
         self._factor = None
-        with self.incremental.not_measuring() if self.incremental is not None else nullcontext():
+        with self.recovery.corrections():
             return self._refuse_all()
 
     def _refuse_all(self) -> NDArray[np.bool_]:
@@ -389,8 +396,7 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         if x.shape != (self.dim,):
             raise EstimatorError(f"set_estimate: expected shape ({self.dim},), got {x.shape}")
         self._x[: self.dim] = x
-        if self.incremental is not None:
-            self.incremental.on_invalidate()
+        self.recovery.invalidate()
 
     def information_form(self) -> "InformationFilter":
         """The problem in information form, on which smoothing, loop correction and scale
@@ -402,6 +408,128 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         to do, the step changed this filter."""
         if filt is not self:
             raise EstimatorError("set_from_information_form: expected this filter's own information form")
+
+    # -- per-keyframe recovery (the recovery object's) ------------------------------------
+    def recover_active(self) -> Array:
+        """Per-keyframe recovery by the recovery object (:mod:`.recovery_modes`): exact over
+        the active window, other states keeping their last estimate (``"incremental"``), or
+        :meth:`recover` (``"full"``)."""
+        return self.recovery.recover(self)
+
+    def recover_rebuilt(self) -> Array:
+        """:meth:`recover`; in incremental mode by rebuilding the recovery window (about one
+        full solve) and back-substituting, so that the window is valid afterwards and the
+        next :meth:`recover_active` needs no second rebuild (after :meth:`relinearise`)."""
+        return self.recovery.recover_rebuilt(self)
+
+    def recent_estimate(self, steps: int) -> Array:
+        """Back-substitute the states marginalised in about the last ``steps`` recoveries
+        (exact for those, at a cost bounded by ``steps``; older ones keep their values until
+        :meth:`complete_estimate`). Full recovery: nothing to do."""
+        return self.recovery.recent(self, steps)
+
+    def complete_estimate(self) -> Array:
+        """Back-substitute every marginalised state (``O(n)``), so that ``x`` equals the full
+        solve of the information as of the last :meth:`recover_active`. Full recovery:
+        nothing to do."""
+        return self.recovery.complete(self, self.x)
+
+    # -- sessions -----------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """What a session keeps, as arrays and JSON values (:mod:`.statedict`): the layout,
+        the complete estimate, ``I`` (CSC arrays) and ``i``, the priors, every stored
+        measurement and the incremental recovery's bookkeeping. The filter is not changed."""
+        order = self.layout.order
+        x = self.recovery.complete(self, self.x.copy())
+        I = sp.csc_matrix(self.information_matrix(), copy=True)
+        I.sum_duplicates()
+        weak = {kind: [(i, v) for (kd, i), v in self.priors.weak.items() if kd == kind] for kind in StateKind}
+        batches = self.store.features
+        return {
+            "is_feature": np.array([k.kind == StateKind.FEATURE for k in order], bool),
+            "id": np.array([k.id for k in order], np.int64),
+            "x": x,
+            "x_first": self.first_estimates.copy(),
+            "I": {"data": I.data.astype(float), "indices": I.indices.astype(np.int64),
+                  "indptr": I.indptr.astype(np.int64)},
+            "i": self.information_vector(),
+            "prior_pose": {"ids": np.array(list(self.priors.pose), np.int64),
+                           "p": np.array([p for p, _ in self.priors.pose.values()], float).reshape(-1, 3),
+                           "q": np.array([q for _, q in self.priors.pose.values()], float).reshape(-1, 4)},
+            "scale": None if self.priors.scale is None else list(self.priors.scale),
+            **{f"weak_{kind.value}": {"ids": np.array([i for i, _ in weak[kind]], np.int64),
+                                      "x": np.array([v for _, v in weak[kind]], float).reshape(-1, n)}
+               for kind, n in ((StateKind.POSE, POSE_DIM), (StateKind.FEATURE, FEATURE_DIM))},
+            "zm": pack_features(self.store.all_features()),
+            "zm_batches": np.array([len(b) for b in batches], np.int64),
+            "relative": pack_relative(self.store.relative),
+            "incremental": self.recovery.state_dict(),
+            "online": None if self.recovery.online is None else self.recovery.online.state_dict(),
+        }
+
+    def load_state_dict(self, d) -> None:
+        """Restore :meth:`state_dict` into this (new, empty) filter. The incremental
+        recovery's window starts invalid and is rebuilt from ``I`` at the next step.
+
+        Raises
+        ------
+        SessionError
+            On a missing, malformed or inconsistent entry (nothing is trusted).
+        """
+        if self.layout.n_states:
+            raise SessionError("a session loads into a new filter only")
+        isf = take(d, "is_feature", bool, (None,))
+        ids = take_ids(d, "id", len(isf))
+        try:
+            for f, i in zip(isf.tolist(), ids.tolist()):
+                (self.layout.add_feature if f else self.layout.add_pose)(i)
+        except EstimatorError as exc:
+            raise SessionError(f"bad state layout: {exc}") from None
+        n = self.dim
+        self._grow()
+        Id = sub(d, "I")
+        indptr = take_ids(Id, "indptr", n + 1)
+        data = take(Id, "data", np.float64, (None,))
+        indices = take_ids(Id, "indices", len(data))
+        if indptr[0] != 0 or indptr[-1] != len(data) or np.any(np.diff(indptr) < 0):
+            raise SessionError("array 'indptr' is not a CSC column pointer")
+        check_index(indices, n, "array 'indices'")
+        self.info.set(sp.csc_matrix((data, indices, indptr), shape=(n, n)), take(d, "i", np.float64, (n,)))
+        self._x[:n] = take(d, "x", np.float64, (n,))
+        self._xfe[:n] = take(d, "x_first", np.float64, (n,)) if "x_first" in d else self._x[:n]
+        pp = sub(d, "prior_pose")
+        pids = take_ids(pp, "ids")
+        self._check_states(StateKind.POSE, pids, "prior_pose")
+        for fid, p, q in zip(pids.tolist(), take(pp, "p", np.float64, (len(pids), 3)),
+                             take(pp, "q", np.float64, (len(pids), 4))):
+            self.priors.pose[fid] = (p.copy(), q.copy())
+        sc = d.get("scale")
+        if sc is not None:
+            if not (isinstance(sc, list) and len(sc) == 3):
+                raise SessionError("entry 'scale' must be [frame_a, frame_b, distance]")
+            sd = dict(zip("abd", sc))
+            a, b, dist = take_int(sd, "a", 0), take_int(sd, "b", 0), take_float(sd, "d")
+            self._check_states(StateKind.POSE, np.array([a, b]), "scale")
+            self.priors.scale = (a, b, dist)
+        for kind, size in ((StateKind.POSE, POSE_DIM), (StateKind.FEATURE, FEATURE_DIM)):
+            w = sub(d, f"weak_{kind.value}")
+            wids = take_ids(w, "ids")
+            self._check_states(kind, wids, f"weak_{kind.value}")
+            for i, v in zip(wids.tolist(), take(w, "x", np.float64, (len(wids), size))):
+                self.priors.weak[(kind, i)] = v.copy()
+        obs = unpack_features(sub(d, "zm"))
+        self._check_states(StateKind.POSE, obs.pose, "zm")
+        self._check_states(StateKind.FEATURE, obs.feature, "zm")
+        sizes = take_ids(d, "zm_batches")
+        if int(sizes.sum()) != len(obs):
+            raise SessionError("array 'zm_batches' does not add up to the stored Zm")
+        bounds = np.cumsum(sizes)
+        self.store.features = [obs.subset(slice(a, b)) for a, b in zip(bounds - sizes, bounds)]
+        self.store.relative = unpack_relative(sub(d, "relative"))
+        self._check_states(StateKind.POSE, np.array([[r.i, r.j] for r in self.store.relative], np.int64), "relative")
+        # after info.set, which clears the recovery's bookkeeping
+        self.recovery.load_state_dict(d.get("incremental"), None if d.get("online") is None else sub(d, "online"), n)
+        self._factor = None
 
     # -- uncertainty ------------------------------------------------------------------
     def covariance(self, idx) -> Array:
@@ -415,7 +543,7 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         (``R_true = R_est @ Exp(dtheta)``), mapped from the 4-vector quaternion block.
         """
         cols = self.layout.pose_columns([frame_id])[0]
-        C = self.incremental.pose_covariance(cols) if self.incremental is not None else None
+        C = self.recovery.pose_covariance(cols)
         if C is None:
             C = self.covariance(cols)
         return pose_tangent_covariance(C, self.x[cols[3:]])
@@ -446,11 +574,7 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
             return out
         uniq, inv = np.unique(ids[known], return_inverse=True)
         cols = self.layout.feature_columns(uniq)
-        if self.incremental is not None:
-            C = self.incremental.feature_covariances(cols[:, 0])
-        else:  # the recovery's own factorisation, made again when missing (after a load)
-            full = self.factor().covariance(cols.ravel())
-            C = np.stack([full[3 * n:3 * n + 3, 3 * n:3 * n + 3] for n in range(len(uniq))])
+        C = self.recovery.feature_covariances(self, cols)
         out[known] = C[inv.reshape(-1)]
         return out
 
@@ -489,11 +613,7 @@ class InformationFilter(FilterSessionMixin, WindowRecoveryMixin):
         Gh = np.concatenate([G[:, :n_p], G[:, n_p:].reshape(k, len(ids), 3)[:, have].reshape(k, -1)], 1)
         if not fr and not have.any():
             return np.zeros((k, k))
-        if self.incremental is not None:
-            return self.incremental.propagate(pcols[:, 0], fcols[:, 0], Gh)
-        if self._factor is None:
-            return None if fr else np.zeros((k, k))
-        return Gh @ self._factor.covariance(np.concatenate([pcols.ravel(), fcols.ravel()])) @ Gh.T
+        return self.recovery.propagate(self, pcols[:, 0], fcols[:, 0], Gh)
 
     def feature_covariance(self, track_id: int) -> Array:
         """3x3 covariance of a map feature."""

@@ -1,0 +1,235 @@
+"""How the filter recovers its state each keyframe: an object the filter is given.
+
+:class:`~eifslam.estimation.filter.InformationFilter` delegates everything that depends on
+the way the state is recovered to one of these, chosen at construction:
+
+* :class:`FullRecovery` solves ``I x = i`` over the whole state every time (sparse
+  Cholesky with the features eliminated first, :mod:`.recovery`): exact, ``O(n)`` and more
+  per keyframe;
+* :class:`WindowRecovery` keeps an active window of recently measured states exactly solved
+  and the rest marginalised into conditionals (:class:`~.incremental.IncrementalRecovery`,
+  paper III-G), optionally with online relinearisation of the window's measurements
+  (:class:`~.relinearisation.OnlineRelinearisation`): a cost per keyframe bounded by the
+  window, not by the map.
+
+Both answer the same questions (recover, complete or recent estimate, marginal covariances
+where cheap, session state), so the filter has no branch on which one it holds.
+"""
+
+from __future__ import annotations
+
+from contextlib import AbstractContextManager, nullcontext
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import EstimatorError, SessionError
+from .incremental import IncrementalRecovery, TrackedInformationStore
+from .information import InformationStore
+from .relinearisation import OnlineRelinearisation
+
+if TYPE_CHECKING:  # the filter holds these objects; they only call its public methods
+    from .filter import InformationFilter
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+__all__ = ["RecoveryMode", "FullRecovery", "WindowRecovery"]
+
+
+@runtime_checkable
+class RecoveryMode(Protocol):
+    """What :class:`~eifslam.estimation.filter.InformationFilter` asks of its recovery."""
+
+    incremental: IncrementalRecovery | None
+    online: OnlineRelinearisation | None
+
+    def information_store(self) -> InformationStore:
+        """A new, empty store of ``I`` and ``i``, with this recovery listening to it."""
+        ...
+
+    def recover(self, filt: "InformationFilter") -> Array:
+        """The per-keyframe recovery into ``filt``'s estimate; returns ``filt.x``."""
+        ...
+
+    def recover_rebuilt(self, filt: "InformationFilter") -> Array:
+        """A complete recovery after ``I`` was replaced wholesale; returns ``filt.x``."""
+        ...
+
+    def complete(self, filt: "InformationFilter", x: Array) -> Array:
+        """Bring every state of ``x`` (``filt``'s estimate or a copy) to the solution."""
+        ...
+
+    def recent(self, filt: "InformationFilter", steps: int) -> Array:
+        """Bring the states of about the last ``steps`` keyframes to the solution."""
+        ...
+
+    def invalidate(self) -> None:
+        """``I`` or ``x`` were replaced from outside: start again at the next recovery."""
+        ...
+
+    def corrections(self) -> AbstractContextManager:
+        """A context in which what is added to ``I`` corrects rather than measures."""
+        ...
+
+    def pose_covariance(self, cols: IntArray) -> Array | None:
+        """(7, 7) marginal of pose entries ``cols`` where cheap, else None."""
+        ...
+
+    def feature_covariances(self, filt: "InformationFilter", cols: IntArray) -> Array:
+        """(F, 3, 3) marginals of features whose first entries are ``cols``; NaN where not cheap."""
+        ...
+
+    def propagate(self, filt: "InformationFilter", pose_starts: IntArray, starts: IntArray,
+                  G: Array) -> Array | None:
+        """``G P G^T`` for the joint marginal of the given poses and features, where cheap."""
+        ...
+
+    def state_dict(self) -> dict | None:
+        """What a session keeps of the recovery (None: nothing)."""
+        ...
+
+    def load_state_dict(self, incremental: Any, online: Any, n: int) -> None:
+        """Restore :meth:`state_dict`, checked (:class:`~eifslam.errors.SessionError`)."""
+        ...
+
+
+class FullRecovery:
+    """Every recovery is the full sparse solve of ``I x = i``; covariances come from its
+    factorisation (cached by the filter)."""
+
+    incremental = None
+    online = None
+
+    def information_store(self) -> InformationStore:
+        return InformationStore()
+
+    def recover(self, filt: "InformationFilter") -> Array:
+        return filt.recover()
+
+    def recover_rebuilt(self, filt: "InformationFilter") -> Array:
+        return filt.recover()
+
+    def complete(self, filt: "InformationFilter", x: Array) -> Array:
+        return x  # nothing is marginalised
+
+    def recent(self, filt: "InformationFilter", steps: int) -> Array:
+        return filt.x
+
+    def invalidate(self) -> None:
+        pass
+
+    def corrections(self) -> AbstractContextManager:
+        return nullcontext()
+
+    def pose_covariance(self, cols: IntArray) -> Array | None:
+        return None  # the filter's factorisation answers
+
+    def feature_covariances(self, filt: "InformationFilter", cols: IntArray) -> Array:
+        full = filt.factor().covariance(np.asarray(cols, np.int64).reshape(-1, 3).ravel())
+        F = len(full) // 3
+        return np.stack([full[3 * n:3 * n + 3, 3 * n:3 * n + 3] for n in range(F)]) if F else np.zeros((0, 3, 3))
+
+    def propagate(self, filt: "InformationFilter", pose_starts: IntArray, starts: IntArray,
+                  G: Array) -> Array | None:
+        factor = filt.cached_factor()
+        if factor is None:  # not cheap: only poses need it
+            return None if len(pose_starts) else np.zeros((G.shape[0], G.shape[0]))
+        cols = np.concatenate([(np.asarray(pose_starts, np.int64)[:, None] + np.arange(7)).ravel(),
+                               (np.asarray(starts, np.int64)[:, None] + np.arange(3)).ravel()])
+        return G @ factor.covariance(cols) @ G.T
+
+    def state_dict(self) -> dict | None:
+        return None
+
+    def load_state_dict(self, incremental: Any, online: Any, n: int) -> None:
+        if incremental is not None:
+            raise SessionError("entry 'incremental' does not match the configured recovery")
+
+
+class WindowRecovery:
+    """Exact over an active window of recent states, the rest marginalised
+    (:class:`~.incremental.IncrementalRecovery`); with ``online``, the window's measurements
+    whose states moved are relinearised before each recovery.
+
+    Parameters
+    ----------
+    window : int
+        Steps without a measurement before a state leaves the window.
+    online : OnlineRelinearisation, optional
+    """
+
+    def __init__(self, window: int, online: OnlineRelinearisation | None = None) -> None:
+        self.incremental: IncrementalRecovery = IncrementalRecovery(window, window)
+        self.online = online
+
+    def information_store(self) -> InformationStore:
+        info = TrackedInformationStore()
+        info.listeners.append(self.incremental)
+        if self.online is not None:
+            info.listeners.append(self.online)
+        return info
+
+    def recover(self, filt: "InformationFilter") -> Array:
+        if self.online is not None:  # relinearise the window's measurements that moved
+            self.online.step(filt)
+        try:
+            self.incremental.step(filt.layout, filt.info, filt.x)
+        except EstimatorError:
+            # the dense window could not be solved (numerically indefinite): rebuild it at
+            # the next step and use the full sparse solve for this one
+            self.incremental.on_invalidate()
+            self.incremental.stats.fallbacks += 1
+            return filt.recover()
+        return filt.x
+
+    def recover_rebuilt(self, filt: "InformationFilter") -> Array:
+        inc = self.incremental
+        inc.on_invalidate()
+        try:
+            inc.step(filt.layout, filt.info, filt.x)
+        except EstimatorError:
+            inc.on_invalidate()
+            return filt.recover()
+        inc.full_solution(filt.x)
+        if not np.all(np.isfinite(filt.x)):
+            inc.on_invalidate()
+            raise EstimatorError("state recovery produced non-finite values")
+        return filt.x
+
+    def complete(self, filt: "InformationFilter", x: Array) -> Array:
+        if self.incremental.valid:
+            self.incremental.full_solution(x)
+        return x
+
+    def recent(self, filt: "InformationFilter", steps: int) -> Array:
+        if self.incremental.valid:
+            self.incremental.recent_solution(filt.x, 2 * int(steps))
+        return filt.x
+
+    def invalidate(self) -> None:
+        self.incremental.on_invalidate()
+
+    def corrections(self) -> AbstractContextManager:
+        return self.incremental.not_measuring()
+
+    def pose_covariance(self, cols: IntArray) -> Array | None:
+        return self.incremental.pose_covariance(cols)
+
+    def feature_covariances(self, filt: "InformationFilter", cols: IntArray) -> Array:
+        return self.incremental.feature_covariances(np.asarray(cols, np.int64).reshape(-1, 3)[:, 0])
+
+    def propagate(self, filt: "InformationFilter", pose_starts: IntArray, starts: IntArray,
+                  G: Array) -> Array | None:
+        return self.incremental.propagate(pose_starts, starts, G)
+
+    def state_dict(self) -> dict | None:
+        return self.incremental.state_dict()
+
+    def load_state_dict(self, incremental: Any, online: Any, n: int) -> None:
+        if incremental is None:
+            raise SessionError("entry 'incremental' does not match the configured recovery")
+        self.incremental.load_state_dict(incremental, n)
+        if self.online is not None and online is not None:
+            self.online.load_state_dict(online, n)
