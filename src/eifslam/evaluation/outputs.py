@@ -74,8 +74,9 @@ def loop_rows(slam: Slam, input_index: dict[int, int] | None = None) -> list[dic
 
 def refused_loop_rows(slam: Slam) -> list[dict[str, Any]]:
     """``report.json``'s ``loops_refused``: the loops that passed the geometric verification
-    and were not fused because the estimate contradicts them (or awaits their confirmation),
-    one dict each: ``frame``, ``old_frame``, ``reason``."""
+    and were refused because the estimate contradicts them, one dict each: ``frame``,
+    ``old_frame``, ``reason`` (those held for confirmation by the next keyframes are not
+    listed)."""
     return [dict(frame=int(k), old_frame=int(j), reason=why) for k, j, why in slam.loops.rejected
             if "disagrees with the estimate" in why]
 

@@ -109,9 +109,9 @@ covariances are honest (:meth:`LoopCloser._disagreement`)."""
 
 @dataclass
 class PendingLoop:
-    """A verified loop whose position the estimate does not confirm, held for the next
-    keyframes: frame, old frame, its loop pose ``p (3,)``, ``q (4,)`` with covariance
-    ``(6, 6)``, and how many consecutive keyframes agreed so far."""
+    """A verified loop held until consecutive keyframes confirm it: frame, old frame, its
+    loop pose ``p (3,)``, ``q (4,)`` with covariance ``(6, 6)``, and how many consecutive
+    keyframes agreed so far."""
 
     frame: int
     old: int
@@ -393,80 +393,57 @@ class LoopCloser:
         it may): its pose ``(p_m, q_m)``, localised on the old map features ``X``, against
         what the estimate knows (:mod:`~eifslam.estimation.agreement`).
 
-        1. **Rotation.** The rotation the loop implies must agree with the estimate's, at
-           the false-alarm rate :data:`AGREEMENT_FALSE_ALARM` of chi-square with 3 degrees of
-           freedom, against the rotation drift the relative poses fused between the two
-           frames allow (their ``ZR`` covariances summed in the world frame: dead reckoning,
-           an upper bound of what the map-aided estimate can have drifted) plus the loop's
-           own. A perceptual alias (the same picture elsewhere) is seen from another
-           direction and fails here however consistently it is recognised.
-        2. **Position.** A loop whose pose also agrees with the estimate's joint covariance
-           of the two poses (6 degrees of freedom, same rate) is fused. One that does not
-           (a long loop: the position drift of a monocular estimate, scale drift included,
-           outgrows its linearised covariance) is held until the next
-           ``loops.consistency - 1`` keyframes verify the same place with loop poses that
-           agree with one another (the same test between consecutive loop frames, whose
-           relative pose the estimate knows well), as ORB-SLAM asks a group of consistent
-           keyframes before it corrects a loop.
+        1. **Rotation against the estimate.** The rotation the loop implies must agree with
+           the estimate's, at the false-alarm rate :data:`AGREEMENT_FALSE_ALARM` of
+           chi-square with 3 degrees of freedom, against the rotation drift the relative
+           poses fused between the two frames allow (their ``ZR`` covariances summed in the
+           world frame: dead reckoning, an upper bound of what the map-aided estimate can
+           have drifted) plus the loop's own. A perceptual alias (the same picture on
+           another wall) is seen from another direction and fails here however consistently
+           it is recognised and however well its geometry fits.
+        2. **Position by agreement of consecutive keyframes.** The position drift of a
+           monocular estimate holds scale drift, which no fused measurement bounds (``ZT``
+           is a direction), so the estimate cannot decide on a loop's position. The loop is
+           held until ``loops.consistency`` consecutive keyframes have verified the same
+           place with loop poses that agree with one another: the relative rotation of two
+           consecutive loop poses against the estimate's relative rotation of the two
+           frames (3 degrees of freedom, same rate, the rotation drift between them plus
+           both loops' covariances), as ORB-SLAM asks a group of consistent keyframes
+           before it corrects a loop.
         """
-        from ..estimation.agreement import chi2_quantile, pose_agreement, rotation_agreement
+        from ..estimation.agreement import chi2_quantile, rotation_agreement
         from ..estimation.localisation import map_pose_covariance
 
         filt = self.filter
         C_m = map_pose_covariance(self.camera, p_m, q_m, X, self.config.zm_sigma_px)
         if C_m is None:
             return "the loop's pose is not determined"
-        (p_j, q_j), (p_k, q_k) = filt.pose(j), filt.pose(k)
-        chain = self._rotation_drift(j, k)
-        nis_rot = rotation_agreement(q_k, q_m, chain, C_m[3:, 3:])
-        if not nis_rot <= chi2_quantile(3, AGREEMENT_FALSE_ALARM):
+        q_k = filt.pose(k)[1]
+        nis_rot = rotation_agreement(q_k, q_m, self._rotation_drift(j, k), C_m[3:, 3:])
+        bound = chi2_quantile(3, AGREEMENT_FALSE_ALARM)
+        if not nis_rot <= bound:
             self._pending = None
             return f"rotation disagrees with the estimate (NIS {nis_rot:.3g}, 3 DOF)"
-        nis = pose_agreement(p_j, q_j, p_k, q_k, self._joint_tangent_covariance(j, k), p_m, q_m, C_m)[0]
-        if nis <= chi2_quantile(6, AGREEMENT_FALSE_ALARM):
-            self._pending = None
-            return ""
-        pend = self._pending
+        pend, count = self._pending, 1
         if pend is not None and pend.frame < k and abs(pend.old - j) <= self._place_span(pend.old):
-            # the loop pose of frame k carried to frame pend.frame by the loop poses' relative
-            # motion, against the estimate's relative motion of the two frames
-            R_a = quat_to_rotmat(pend.q)
-            p_rel, q_rel = R_a.T @ (p_m - pend.p), quat_multiply(quat_conjugate(pend.q), q_m)
-            pa, qa = filt.pose(pend.frame)
-            p_c = pa + quat_to_rotmat(qa) @ p_rel
-            q_c = quat_multiply(qa, q_rel)
-            nis_pair = pose_agreement(pa, qa, p_k, q_k, self._joint_tangent_covariance(pend.frame, k),
-                                      p_c, q_c, C_m + pend.covariance)[0]
-            if nis_pair <= chi2_quantile(6, AGREEMENT_FALSE_ALARM):
-                pend = PendingLoop(k, j, p_m, q_m, C_m, pend.count + 1)
-            else:
-                pend = PendingLoop(k, j, p_m, q_m, C_m, 1)
-        else:
-            pend = PendingLoop(k, j, p_m, q_m, C_m, 1)
-        if pend.count >= max(int(self.config.loops.consistency), 1):
+            # the loop rotation of frame k carried to frame pend.frame by the two loop poses'
+            # relative rotation, against the estimate's rotation of frame k
+            q_a = filt.pose(pend.frame)[1]
+            q_c = quat_multiply(q_a, quat_multiply(quat_conjugate(pend.q), q_m))
+            nis_pair = rotation_agreement(q_k, q_c, self._rotation_drift(pend.frame, k),
+                                          C_m[3:, 3:] + pend.covariance[3:, 3:])
+            count = pend.count + 1 if nis_pair <= bound else 1
+        if count >= max(int(self.config.loops.consistency), 1):
             self._pending = None
             return ""
-        self._pending = pend
-        return f"position disagrees with the estimate (NIS {nis:.3g}, 6 DOF): held for confirmation ({pend.count})"
+        self._pending = PendingLoop(k, j, p_m, q_m, C_m, count)
+        return f"held until consecutive keyframes confirm it ({count} of {self.config.loops.consistency})"
 
     def _place_span(self, j: int) -> int:
         """How far apart two old frames may be and still be one place: the frames that share
         map tracks with frame *j* span it."""
         near = self._place_parts(j)[0]
         return max((abs(f - j) for f in near), default=0)
-
-    def _joint_tangent_covariance(self, a: int, b: int) -> Array:
-        """(12, 12) joint covariance of ``[dp, dtheta]`` of poses *a* and *b* from the
-        estimate (a solve of the whole information: a loop is verified rarely)."""
-        from ..estimation.state import pose_tangent_jacobian
-
-        filt = self.filter
-        cols = filt.layout.pose_columns([a, b])
-        C = filt.covariance(cols.ravel())
-        T = np.zeros((12, 14))
-        T[:6, :7] = pose_tangent_jacobian(filt.x[cols[0][3:]])
-        T[6:, 7:] = pose_tangent_jacobian(filt.x[cols[1][3:]])
-        return T @ C @ T.T
 
     def _rotation_drift(self, j: int, k: int) -> Array:
         """(3, 3) covariance, in frame *k*'s camera frame, of the rotation drift the relative
