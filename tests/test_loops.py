@@ -345,3 +345,81 @@ def test_a_few_long_tracks_do_not_join_two_places():
     assert lc._joined(covis, set()) == {498, 470}
     assert lc._joined(covis, {5}) == {498, 470, 5}
     assert lc._joined({3: 2, 0: 1}, set()) == {0, 3}
+
+
+class _Layout:
+    def __init__(self, ids):
+        self.ids = set(ids)
+
+    def has_pose(self, k):
+        return k in self.ids
+
+
+class _Store:
+    def __init__(self, rps):
+        self.relative = rps
+
+
+class _Filter:
+    """The estimate the loop agreement reads: poses along a straight walk and the relative
+    poses fused between consecutive ones (their ZR covariance: 0.1 degree a step)."""
+
+    def __init__(self, n):
+        from eifslam.estimation.measurements import RelativePose
+
+        self.p = {k: np.array([0.1 * k, 0.0, 0.0]) for k in range(n)}
+        self.q = {k: np.array([1.0, 0.0, 0.0, 0.0]) for k in range(n)}
+        cov = np.diag([np.radians(0.1) ** 2] * 3 + [1e-4] * 2)
+        self.store = _Store([RelativePose(k - 1, k, np.array([1.0, 0, 0, 0]), np.array([1.0, 0, 0]), cov)
+                             for k in range(1, n)])
+        self.layout = _Layout(range(n))
+
+    def pose(self, k):
+        return self.p[k], self.q[k]
+
+
+def _closer(n):
+    from eifslam.geometry.camera import PinholeCamera
+    from eifslam.system.loops import LoopCloser
+
+    cam = PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)
+
+    class _Mapper:
+        def covisible(self, ids):
+            return {}
+
+    class _FrontEnd:
+        def map_observations(self, k):
+            return np.zeros(0, np.int64), np.zeros((0, 2))
+
+    return LoopCloser(cam, SlamConfig(), _FrontEnd(), _Filter(n), _Mapper()), cam
+
+
+def test_a_loop_must_agree_in_rotation_with_the_drift_the_relative_poses_allow():
+    from eifslam.geometry.rotations import quat_exp, quat_multiply
+
+    from eifslam.geometry.rotations import quat_to_rotmat
+
+    lc, _ = _closer(200)
+    rng = np.random.default_rng(0)
+    seen = np.c_[rng.uniform(-2, 2, 60), rng.uniform(-1.5, 1.5, 60), rng.uniform(4, 8, 60)]  # camera frame
+
+    def points(p, q):  # what a loop pose (p, q) was localised on: points in front of it
+        return p + seen @ quat_to_rotmat(q).T
+
+    p_k, q_k = lc.filter.pose(199)
+    X = points(p_k, q_k)
+    # a half-turn alias (the same picture on the opposite wall) is refused at once
+    alias = quat_multiply(q_k, quat_exp(np.array([0.0, np.radians(178.0), 0.0])))
+    why = lc._disagreement(5, 199, p_k + [3.0, 0, 0], alias, points(p_k + [3.0, 0, 0], alias))  # noqa: SLF001
+    assert why.startswith("rotation disagrees with the estimate")
+    # a loop one degree off after 194 steps of 0.1 degree (1.4 degrees of drift, 1 sigma) is
+    # held until the next keyframes confirm it, then fused
+    q_m = quat_multiply(q_k, quat_exp(np.array([0.0, np.radians(1.0), 0.0])))
+    assert "held" in lc._disagreement(5, 197, p_k, q_m, X)  # noqa: SLF001
+    assert "held" in lc._disagreement(5, 198, p_k, q_m, X)  # noqa: SLF001
+    assert lc._disagreement(5, 199, p_k, q_m, X) == ""  # noqa: SLF001
+    # consecutive loop poses that disagree with each other start the count again
+    other = quat_multiply(q_k, quat_exp(np.array([0.0, np.radians(-1.0), 0.0])))
+    assert "(1 of" in lc._disagreement(5, 197, p_k, q_m, X)  # noqa: SLF001
+    assert "(1 of" in lc._disagreement(5, 198, p_k, other, X)  # noqa: SLF001
