@@ -152,7 +152,7 @@ def _tracked(frames: int, seed: int):
 def test_relative_gate_statistic_is_against_the_measurements_own_covariance():
     """The statistic is the measurement's own normalised innovation squared at the
     filter's estimate of the two poses."""
-    from eifslam.system.tracking import relative_gate_statistic
+    from eifslam.system.algorithm1 import relative_gate_statistic
 
     f, _ = _tracked(3, 1)
     rp = next(r for r in f.store.relative if r.i == 0)  # pose 0 is fixed by its prior

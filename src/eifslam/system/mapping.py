@@ -1,15 +1,16 @@
-"""Local mapping: what happens to a frame once its pose is in the state (Algorithm 1 steps 3-5).
+"""Local mapping: the map side of Algorithm 1 (:func:`~.algorithm1.algorithm1`).
 
 The :class:`Mapper` records each frame's map observations (``Zm``) per track, finds map
-features that tracking lost again (re-observation), triangulates new map features whose
-observations pass the filter's gate (:meth:`Mapper.fits`), fuses every ``Zm`` and
-recovers the state. It owns the per-track observation history and the feature colours;
-it talks to the front end and the filter through their public methods only.
+features that tracking lost again (re-observation), computes the initial guesses of new
+map features whose observations pass the filter's gate (step 3,
+:meth:`Mapper.triangulate_new`) and recovers the state after fusion (step 5). It owns the
+per-track observation history and the feature colours; it talks to the front end and the
+filter through their public methods only.
 """
 
 from __future__ import annotations
 
-import time
+from dataclasses import dataclass
 from itertools import chain
 
 import numpy as np
@@ -19,11 +20,12 @@ from ..estimation.initialisation import refine_points, triangulate
 from ..estimation.measurements import FeatureObservations
 from ..estimation.statedict import take, take_ids
 from ..geometry.camera import PinholeCamera
+from ..geometry.rotations import quat_normalize
 from .config import SlamConfig
 
 Array = NDArray[np.float64]
 
-__all__ = ["Mapper", "project"]
+__all__ = ["Mapper", "NewFeatures", "project"]
 
 _GREY = np.array([200, 200, 200], np.uint8)
 
@@ -55,6 +57,24 @@ def project(camera: PinholeCamera, p: Array, q: Array, X: Array) -> tuple[Array,
     h, _, _, z = feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X,
                                camera.fx, camera.fy, camera.cx, camera.cy)
     return h, z
+
+
+@dataclass(frozen=True)
+class NewFeatures:
+    """Algorithm 1 step 3 for one frame: the new map features and the ``Zm`` step 5 fuses.
+
+    Attributes
+    ----------
+    ids : (F,) int64 track ids of the new features.
+    X : (F, 3) their initial guesses, world frame.
+    zm : FeatureObservations
+        The frame's ``Zm`` of known features and every view of the new ones that passes
+        the gate.
+    """
+
+    ids: NDArray[np.int64]
+    X: Array
+    zm: FeatureObservations
 
 
 class Mapper:
@@ -187,22 +207,6 @@ class Mapper:
             return 0
         return self.frontend.reobserve(k, fids[vis], h[vis], r)
 
-    def fuse_and_recover(self, k: int, t0: float, timings: dict[str, float], recover: bool = True) -> None:
-        """Algorithm 1 steps 3-5 for a frame whose pose is in the state: new features,
-        fuse every ``Zm``, recover; ``t0`` is when initialisation started (for the
-        ``init``, ``fuse`` and ``recover`` entries of ``timings``, milliseconds).
-        ``recover=False`` leaves the recovery to the caller (one recovery after placing
-        several earlier frames, :meth:`Slam.retry_lost`)."""
-        ids, uv = self.record_observations(k)
-        batch = self.new_features(k, ids, uv)
-        t1 = time.perf_counter()
-        self.filter.fuse_features(batch)
-        t2 = time.perf_counter()
-        if recover:
-            self.recover()
-        t3 = time.perf_counter()
-        timings.update(init=1e3 * (t1 - t0), fuse=1e3 * (t2 - t1), recover=1e3 * (t3 - t2))
-
     def recover(self) -> None:
         """Recover the state after fusing: the active window, then the states marginalised
         in the last :data:`RECENT_STEPS` keyframes (their back substitution).
@@ -216,13 +220,37 @@ class Mapper:
         self.filter.recover_active()
         self.filter.recent_estimate(RECENT_STEPS)
 
-    def new_features(self, k: int, ids: NDArray[np.int64], uv: Array) -> FeatureObservations:
-        """``Zm`` of frame *k* for known features, plus every observation of features that
-        can now be triangulated (Algorithm 1 step 3); the new features are added to the
-        state."""
+    def triangulate_new(self, k: int, ids: NDArray[np.int64], uv: Array, p_k: Array, q_k: Array) -> NewFeatures:
+        """Algorithm 1 step 3: initial guesses of the map features frame *k* makes
+        triangulable, from the initial guess of its pose, before anything enters the state.
+
+        A track of ``Zm`` becomes a feature when its first observation from a known pose
+        and frame *k*'s rays differ by ``MappingConfig.feature_parallax_deg``; the two-view
+        midpoint is refined on every view of the track with the poses held fixed (every
+        one of those observations is linearised there for good), and the feature is left
+        out when one of its two triangulating observations fails the ``Zm`` gate
+        (:meth:`fits`: it would enter with single-view, rank-2 information).
+
+        Parameters
+        ----------
+        k : int
+            The frame (not a pose of the state yet).
+        ids, uv : (M,) int, (M, 2)
+            Its ``Zm``: track ids and pixels (:meth:`record_observations`).
+        p_k, q_k : (3,), (4,)
+            The initial guess of its pose (``q_wc``), as given to ``add_pose``.
+
+        Returns
+        -------
+        NewFeatures
+            The new features and every ``Zm`` step 5 fuses: frame *k*'s of known features,
+            and each view of a new feature that passes the gate.
+        """
         filt, cfg = self.filter, self.config
+        # pose k as the state will hold it (add_pose normalises q) and read it back
+        p_k, q_held = np.asarray(p_k, float), quat_normalize(np.asarray(q_k, float))
+        q_k = quat_normalize(q_held)
         known = filt.layout.has_features(ids)
-        p_k, q_k = filt.pose(k)
         poses, feats, uvs = [np.full(int(known.sum()), k)], [ids[known]], [uv[known]]
         new_ids, new_X = [], []
         # first observation from a known pose of every unknown track, grouped by that pose
@@ -244,13 +272,13 @@ class Mapper:
             counts = np.array([len(fr) for _, _, fr, _ in tri])
             frames = np.concatenate([fr for _, _, fr, _ in tri])
             zs_all = np.concatenate([z for _, _, _, z in tri])
-            cols = filt.layout.pose_columns(frames)
+            P, Q = self._poses_of(frames, k, p_k, q_held)
             # the first estimate every view of the feature will be linearised at: the best
             # point those views give for the current poses, not the two-view midpoint
             X_ref, front = refine_points(np.array([X for _, X, _, _ in tri]), np.repeat(np.arange(len(tri)), counts),
-                                         filt.x[cols[:, :3]], filt.x[cols[:, 3:]], zs_all, self.camera)
+                                         P, Q, zs_all, self.camera)
             tri = [(t, X_ref[n] if front[n] else X, fr, z) for n, (t, X, fr, z) in enumerate(tri)]
-            fits_all = self.fits(np.repeat(np.array([X for _, X, _, _ in tri]), counts, axis=0), frames, zs_all)
+            fits_all = self.fits(np.repeat(np.array([X for _, X, _, _ in tri]), counts, axis=0), P, Q, zs_all)
             for (t, Xt, fr, zs), fits in zip(tri, np.split(fits_all, np.cumsum(counts)[:-1])):
                 if not (fits[0] and fits[-1]):
                     # the triangulating pair itself fails the gate: the feature would
@@ -261,18 +289,28 @@ class Mapper:
                 poses.append(fr[fits])
                 feats.append(np.full(int(fits.sum()), t))
                 uvs.append(zs[fits])
-        if new_ids:
-            filt.add_features(new_ids, np.array(new_X))
-        return FeatureObservations.make(np.concatenate(poses), np.concatenate(feats),
-                                        np.concatenate(uvs).reshape(-1, 2), self.config.zm_sigma_px)
+        zm = FeatureObservations.make(np.concatenate(poses), np.concatenate(feats),
+                                      np.concatenate(uvs).reshape(-1, 2), self.config.zm_sigma_px)
+        return NewFeatures(np.array(new_ids, np.int64), np.array(new_X, float).reshape(-1, 3), zm)
 
-    def fits(self, X: Array, frames: NDArray[np.int64], uv: Array) -> NDArray[np.bool_]:
+    def _poses_of(self, frames: NDArray[np.int64], k: int, p_k: Array, q_k: Array) -> tuple[Array, Array]:
+        """Positions ``(N, 3)`` and orientations ``(N, 4)`` of the poses ``frames`` as the
+        state holds them, frame *k* (not in the state yet) at ``(p_k, q_k)``."""
+        x, old = self.filter.x, frames != k
+        P, Q = np.empty((len(frames), 3)), np.empty((len(frames), 4))
+        if old.any():
+            cols = self.filter.layout.pose_columns(frames[old])
+            P[old], Q[old] = x[cols[:, :3]], x[cols[:, 3:]]
+        P[~old], Q[~old] = p_k, q_k
+        return P, Q
+
+    def fits(self, X: Array, p: Array, q: Array, uv: Array) -> NDArray[np.bool_]:
         """Which observations pass the filter's gate.
 
         Parameters
         ----------
         X : (N, 3) points.
-        frames : (N,) ids of the observing poses (in the state).
+        p, q : (N, 3), (N, 4) the observing poses (centres, ``q_wc`` as the state holds them).
         uv : (N, 2) measured pixels.
 
         Returns
@@ -282,9 +320,7 @@ class Mapper:
             ``gate_chi2``: the observations :meth:`InformationFilter.fuse_features` would take.
         """
         filt = self.filter
-        cols = filt.layout.pose_columns(frames)
-        x = filt.x
-        h, z = project(self.camera, x[cols[:, :3]], x[cols[:, 3:]], np.asarray(X, float).reshape(-1, 3))
+        h, z = project(self.camera, p, q, np.asarray(X, float).reshape(-1, 3))
         chi2 = np.sum((uv - h) ** 2, 1) / self.config.zm_sigma_px**2
         ok = (z > filt.config.min_depth) & np.isfinite(chi2)
         if filt.config.gate_chi2 is not None:

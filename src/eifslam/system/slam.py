@@ -26,6 +26,7 @@ from ..estimation.filter import InformationFilter
 from ..estimation.smoothing import SmoothingReport, recover_scale, smooth
 from ..geometry.camera import PinholeCamera
 from .config import Mode, SlamConfig
+from .algorithm1 import OnMap, algorithm1
 from .finishing import FinishReport, bundle_adjust_slam
 from .keyframes import Keyframes
 from .late import place_late, retry_passes, unplaced_initial
@@ -164,8 +165,8 @@ class Slam:
         try:
             rp, tried = tracker.find_reference(k, timings, relocalise=False)
             if rp is not None:
-                tracker.localise_and_fuse(k, rp, timings)
-            elif tracker.localise_from_map(k, timings):
+                algorithm1(k, rp, tracker, timings)
+            elif algorithm1(k, OnMap(), tracker, timings) is not None:
                 p, q = self.filter.pose(k)
                 res = TrackResult(k, ts, TrackingState.TRACKING, p, q, self.filter.pose_covariance(k),
                                   reason="localised from map features (no baseline to a known pose)",
@@ -178,7 +179,7 @@ class Slam:
                     reason = tried.reason if tried is not None else "no known pose to relate to"
                     return self._record(TrackResult(k, ts, self._lost_state(), reason=f"lost: {reason}",
                                                     timings_ms=timings), t0)
-                tracker.localise_and_fuse(k, rp, timings)
+                algorithm1(k, rp, tracker, timings)
         except EstimatorError as exc:  # keep the run alive; the frame counts as lost
             return self._record(TrackResult(k, ts, self._lost_state(), reason=f"lost: {exc}", timings_ms=timings), t0)
         t1 = time.perf_counter()
