@@ -8,9 +8,11 @@ Modules: :mod:`.config` (parameters), :mod:`.features` (detection, OpenCV),
 :mod:`.split` (Ωp/Ωm rule), :mod:`.matching` (descriptors, epipolar RANSAC, OpenCV),
 :mod:`.tracks` (track ids), :mod:`.twoview` (Sampson error, refinement, parallax),
 :mod:`.uncertainty` (first-order and unscented covariances), :mod:`.relative_pose`
-(ZR/ZT with covariance), :mod:`.reassociation` (tracks found again),
-:mod:`.frontend`.
-The modules ``config, split, tracks, twoview, uncertainty, results`` import no
+(ZR/ZT with covariance), :mod:`.results` (result types), :mod:`.frontend` (the
+:class:`FrontEnd`: tracks, tracks found again, its part of a session), :mod:`.places`
+(place recognition), :mod:`.loop_verification` (geometric checks of a loop candidate),
+:mod:`.wide` (wide-baseline matching).
+The modules ``config, split, tracks, twoview, uncertainty, results, places`` import no
 OpenCV.
 """
 

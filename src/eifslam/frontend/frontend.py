@@ -1,31 +1,43 @@
 """The front end: everything between an image and the measurements the filter fuses.
 
-One entry point per image (:meth:`FrontEnd.add_frame`, which is :meth:`FrontEnd.detect`,
-thread-safe and free of the front end's state, then :meth:`FrontEnd.add_features`), then
-queries by frame id:
-keypoints with track ids, tracks common to two frames, the ``Ωm`` observations of a frame
-(``Zm``) and the relative pose of two frames from their ``Ωp`` tracks (``ZR``, ``ZT``).
+One class, :class:`FrontEnd`, in banner-marked parts by role:
+
+- **set-up and pickling**: the OpenCV detector (one per thread) and matcher, made from the
+  config, never pickled;
+- **queries** by frame id: keypoints with track ids, tracks common to two frames, the
+  ``Ωm`` observations of a frame (``Zm``) and the relative pose of two frames from their
+  ``Ωp`` tracks (``ZR``, ``ZT``);
+- **updates**: one entry point per image (:meth:`FrontEnd.add_frame`, which is
+  :meth:`FrontEnd.detect`, thread-safe and free of the front end's state, then
+  :meth:`FrontEnd.add_features`), matching against the last frames under the epipolar
+  RANSAC;
+- **re-association**: tracks that are the same point seen again are merged (guided
+  matching of lost ``Ωm`` tracks, relocalisation against older frames, the tracks a
+  verified loop joins);
+- **sessions**: the stored frames, descriptors and tracks as arrays
+  (:meth:`FrontEnd.state_dict`), checked on loading (:meth:`FrontEnd.load_state_dict`).
+  :mod:`eifslam.system.session` writes these arrays into a ``.npz`` read with
+  ``allow_pickle=False``; nothing a user's file contains is executed.
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from ..geometry.camera import PinholeCamera
-from ..errors import EstimatorError
+from ..errors import EstimatorError, SessionError
+from ..estimation.statedict import check_index, sub, take, take_ids
 from .config import FrontEndConfig
 from .features import AheadMatch, Features, detect_features, make_detector
 from .matching import DescriptorIndex, DescriptorMatcher, essential_ransac, homography_ransac
-from .reassociation import TrackReassociation
 from .relative_pose import estimate_relative_pose
 from .results import FrameFeatures, FrameResult, Reason, RelativePoseResult
-from .session_state import FrontEndState, StoredFrame
 from .split import assign_to_map
 from .tracks import TrackStore
 
@@ -35,8 +47,17 @@ IntArray = NDArray[np.int64]
 __all__ = ["FrontEnd"]
 
 
-class FrontEnd(FrontEndState, TrackReassociation):
-    """Feature detection, track management and relative poses for one calibrated camera.
+@dataclass
+class StoredFrame:
+    """One stored frame of the front end."""
+
+    feats: Features
+    raw_ids: IntArray  # as assigned; resolve through the TrackStore before use
+
+
+class FrontEnd:
+    """Feature detection, track management and relative poses for one calibrated camera,
+    with the merging of tracks seen again and the front end's part of a session.
 
     Parameters
     ----------
@@ -85,10 +106,10 @@ class FrontEnd(FrontEndState, TrackReassociation):
         return state
 
     def __setstate__(self, state: dict) -> None:
-        state.pop("_detector", None)  # sessions saved before detectors were per thread
+        state.pop("_detector", None)  # a pickle holding one shared detector: detectors are per thread
         self.__dict__.update(state)
         self.__dict__.setdefault("_index", {})
-        self.__dict__.pop("_ahead_previous", None)  # before the epipolar check was made ahead too
+        self.__dict__.pop("_ahead_previous", None)  # a pickle without the ahead matching's state
         self.__dict__.setdefault("_ahead_last", None)
         self._local = threading.local()
         self._matcher = self._make_matcher()
@@ -414,3 +435,218 @@ class FrontEnd(FrontEndState, TrackReassociation):
         self._get(frame_id)
         self._desc.pop(int(frame_id), None)
         self._index.pop(int(frame_id), None)
+
+    # ------------------------------------------------------------ re-association
+    def reobserve(self, frame_id: int, track_ids: IntArray, uv_predicted: Array, radius_px: float,
+                  ratio: float | None = None) -> int:
+        """Guided matching: find known ``Ωm`` tracks again in a frame where tracking lost them.
+
+        Each track's descriptor (from its last observation) is matched against all the
+        frame's keypoints (the front end's matcher: FLANN or Hamming); the nearest is
+        taken when it passes the ratio test against the second nearest, lies within
+        ``radius_px`` of where the track is predicted, and started a new ``Ωm`` track in
+        this frame, which is then merged into the old track (so the map feature gets this
+        measurement and the keypoint's measurements are never used twice).
+
+        Parameters
+        ----------
+        frame_id : int
+            A stored frame with descriptors.
+        track_ids : (M,) int64
+            ``Ωm`` track ids (current identities) not seen in the frame.
+        uv_predicted : (M, 2)
+            Undistorted pixels where each track is expected in the frame.
+        radius_px : float
+            Search radius, pixels.
+        ratio : float, optional
+            Ratio-test threshold (default: the matcher's).
+
+        Returns
+        -------
+        int
+            How many tracks were found again.
+        """
+        fid = int(frame_id)
+        fr = self._get(fid)
+        track_ids = np.asarray(track_ids, np.int64).reshape(-1)
+        uv_predicted = np.asarray(uv_predicted, float).reshape(-1, 2)
+        if len(track_ids) == 0 or fid not in self._desc or len(fr.feats) < 2:
+            return 0
+        ratio = self._matcher.ratio if ratio is None else float(ratio)
+        lf, lk = self._last_frame[track_ids], self._last_kp[track_ids]
+        have = (lf >= 0) & (lf != fid) & np.isin(lf, list(self._desc))
+        track_ids, uv_predicted, lf, lk = track_ids[have], uv_predicted[have], lf[have], lk[have]
+        if len(track_ids) == 0:
+            return 0
+        D = np.stack([self._desc[int(f)][int(k)] for f, k in zip(lf, lk)])
+        Dk = self._desc[fid]
+        # Lowe's ratio test over the whole frame (the radius only checks where the nearest
+        # descriptor is): nearest and second-nearest keypoint of each track's descriptor
+        index = self._index[fid] if fid in self._index else self._matcher.index(Dk)  # kept from matching
+        nn, dd = index.knn(D.astype(Dk.dtype), 2)
+        two = nn[:, 1] >= 0
+        best = np.where(two, nn[:, 0], 0)
+        d1 = np.where(two, dd[:, 0], np.inf)
+        d2 = np.where(two, dd[:, 1], 0.0)
+        ok = (d1 < ratio * d2) & (np.linalg.norm(fr.feats.uv[best] - uv_predicted, axis=1) <= radius_px)
+        kid = self._tracks.resolve(fr.raw_ids)
+        fresh = self._tracks.in_map(kid) & (self._tracks.length(kid) == 1)
+        ok &= fresh[best]
+        # a keypoint goes to one track only: the closest descriptor wins
+        cand = np.flatnonzero(ok)
+        cand = cand[np.argsort(d1[cand])]
+        _, first = np.unique(best[cand], return_index=True)
+        found = 0
+        for i in cand[np.sort(first)]:
+            if self._tracks.merge(int(track_ids[i]), int(kid[best[i]])):
+                self._last_frame[track_ids[i]], self._last_kp[track_ids[i]] = fid, best[i]
+                found += 1
+        return found
+
+    def relocalise(self, frame_id: int, candidate_frame_ids) -> list[tuple[int, int]]:
+        """Match a frame against older stored frames and merge the matched tracks.
+
+        Map features (and ``Ωp`` tracks) seen in a candidate regain their identity in
+        ``frame_id``: each matched pair of tracks is merged into the older id, unless the
+        two tracks are of different sets or share a frame.
+
+        Parameters
+        ----------
+        frame_id : int
+            A stored frame (with descriptors).
+        candidate_frame_ids : iterable of int
+            Stored frames to try (those without descriptors are skipped).
+
+        Returns
+        -------
+        list of (candidate_id, n_matches)
+            Epipolar-consistent matches found with each candidate (0 when none).
+        """
+        fr = self._get(frame_id)
+        out: list[tuple[int, int]] = []
+        pairs = []
+        for c in candidate_frame_ids:
+            c = int(c)
+            if c == int(frame_id) or c not in self._desc or int(frame_id) not in self._desc:
+                out.append((c, 0))
+                continue
+            cf = self._get(c)
+            ia, ib = self._epipolar_matches(fr.feats.uv, self._desc[int(frame_id)],
+                                            cf.feats.uv, self._desc[c])
+            out.append((c, int(len(ia))))
+            if len(ia):
+                pairs.append(np.stack([fr.raw_ids[ia], cf.raw_ids[ib]], 1))
+        if pairs:
+            self._merge_pairs(np.concatenate(pairs))
+        return out
+
+    def join_tracks(self, frame_id: int, keypoints: IntArray, track_ids: IntArray) -> None:
+        """Merge the tracks of keypoints of a frame into known tracks (a verified loop): as
+        :meth:`relocalise` merges matched pairs (same set, no shared frame)."""
+        kp = np.asarray(keypoints, np.int64).reshape(-1)
+        if kp.size:
+            self._merge_pairs(np.stack([self._get(frame_id).raw_ids[kp], np.asarray(track_ids, np.int64)], 1))
+
+    def _merge_pairs(self, pairs: IntArray) -> None:
+        """Merge each pair ``(a, b)`` of raw track ids ``(P, 2)`` into the older id, unless
+        the two are one track already, are of different sets or share a frame."""
+        roots = np.unique(self._tracks.resolve(pairs.reshape(-1)))
+        frames: dict[int, set[int]] = {int(r): set() for r in roots}
+        for fid, fr in self._frames.items():
+            ids = self._tracks.resolve(fr.raw_ids)
+            for h in ids[np.isin(ids, roots)]:
+                frames[int(h)].add(fid)
+        for a, b in pairs:
+            ra, rb = (int(v) for v in self._tracks.resolve(np.array([a, b])))
+            if ra == rb or frames[ra] & frames[rb]:
+                continue
+            if self._tracks.merge(ra, rb):
+                frames[min(ra, rb)] = frames[ra] | frames[rb]
+
+    # ------------------------------------------------------------------ sessions
+    def state_dict(self) -> dict:
+        """What a session keeps, as arrays (:mod:`eifslam.estimation.statedict`): every
+        stored frame's keypoints, descriptors and raw track ids (concatenated in frame
+        order, ``n_keypoints`` per frame), which frames can still be matched, the track
+        store and where each track was last seen. The detector and matcher are not kept
+        (they are made from the config)."""
+        frames = [self._frames[f] for f in self._order]
+
+        def cat(get, tail: tuple, dtype) -> NDArray:
+            parts = [np.asarray(get(f)).reshape((-1,) + tail) for f in frames]
+            return np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros((0,) + tail, dtype)
+
+        desc = [f.feats.descriptors for f in frames if f.feats.descriptors.size]
+        width, dtype = (desc[0].shape[1], desc[0].dtype) if desc else (0, np.uint8)
+        D = cat(lambda f: f.feats.descriptors, (width,), dtype)
+        # OpenCV's SIFT descriptors are floats holding integers 0..255: kept as bytes (4x
+        # smaller), exactly
+        as_bytes = D.dtype == np.float32 and bool(np.all((D >= 0) & (D <= 255) & (D == np.round(D))))
+        return {
+            "descriptors_float32": as_bytes,
+            "order": np.array(self._order, np.int64),
+            "n_keypoints": np.array([len(f.feats) for f in frames], np.int64),
+            "matchable": np.array([f in self._desc for f in self._order], bool),
+            "uv": cat(lambda f: f.feats.uv, (2,), float),
+            "uv_raw": cat(lambda f: f.feats.uv_raw, (2,), float),
+            "descriptors": D.astype(np.uint8) if as_bytes else D,
+            "scale_px": cat(lambda f: f.feats.scale_px, (), float),
+            "response": cat(lambda f: f.feats.response, (), float),
+            "sign": cat(lambda f: f.feats.sign, (), np.int8),
+            "colors": cat(lambda f: f.feats.colors, (3,), np.uint8),
+            "raw_ids": cat(lambda f: f.raw_ids, (), np.int64),
+            "tracks": self._tracks.state_dict(),
+            "last_frame": self._last_frame.copy(),
+            "last_kp": self._last_kp.copy(),
+        }
+
+    def load_state_dict(self, d) -> None:
+        """Restore :meth:`state_dict` into this (new, empty) front end, checked.
+
+        Raises
+        ------
+        SessionError
+            On a missing, malformed or inconsistent entry.
+        """
+        if self._order:
+            raise SessionError("a session loads into a new front end only")
+        order = take_ids(d, "order")
+        F = len(order)
+        if len(np.unique(order)) != F:
+            raise SessionError("array 'order' repeats a frame")
+        nk = take_ids(d, "n_keypoints", F)
+        matchable = take(d, "matchable", bool, (F,))
+        N = int(nk.sum())
+        uv, uv_raw = take(d, "uv", np.float64, (N, 2)), take(d, "uv_raw", np.float64, (N, 2))
+        desc = take(d, "descriptors", (np.uint8, np.float32), (N, None))
+        if d.get("descriptors_float32") is True and desc.dtype == np.uint8:
+            desc = desc.astype(np.float32)
+        scale, resp = take(d, "scale_px", np.float64, (N,)), take(d, "response", np.float64, (N,))
+        sign, colors = take(d, "sign", np.int8, (N,)), take(d, "colors", np.uint8, (N, 3))
+        want = (np.float32 if self.config.detector.float_descriptors else np.uint8, self._thread_detector().descriptorSize())
+        if N and (desc.dtype, desc.shape[1]) != want:
+            raise SessionError(f"descriptors are {desc.dtype} x {desc.shape[1]}, the detector's are "
+                               f"{np.dtype(want[0])} x {want[1]}")
+        raw = take_ids(d, "raw_ids", N)
+        tracks = TrackStore()
+        tracks.load_state_dict(sub(d, "tracks"))
+        check_index(raw, len(tracks), "array 'raw_ids'")
+        last_f, last_k = take_ids(d, "last_frame", None, -1), take_ids(d, "last_kp", None, -1)
+        if len(last_f) != len(last_k) or len(last_f) > len(tracks):
+            raise SessionError("arrays 'last_frame' and 'last_kp' do not match the tracks")
+        n_of = dict(zip(order.tolist(), nk.tolist()))
+        seen = last_f >= 0
+        if not np.all(np.isin(last_f[seen], order)) or np.any(
+                last_k[seen] >= np.array([n_of.get(f, 0) for f in last_f[seen].tolist()], np.int64)) \
+                or np.any(last_k[seen] < 0):
+            raise SessionError("arrays 'last_frame' and 'last_kp' name a keypoint that is not stored")
+        ends = np.cumsum(nk)
+        for fid, a, b, m in zip(order.tolist(), (ends - nk).tolist(), ends.tolist(), matchable.tolist()):
+            feats = Features(uv[a:b].copy(), uv_raw[a:b].copy(), desc[a:b].copy(), scale[a:b].copy(),
+                             resp[a:b].copy(), sign[a:b].copy(), colors[a:b].copy())
+            self._frames[fid] = StoredFrame(feats, raw[a:b].copy())
+            if m:
+                self._desc[fid] = feats.descriptors
+        self._order = order.tolist()
+        self._tracks, self._last_frame, self._last_kp = tracks, last_f.copy(), last_k.copy()
+
