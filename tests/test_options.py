@@ -12,11 +12,17 @@ from eifslam.estimation.state import StateKey, StateKind, StateLayout
 from eifslam.geometry.camera import PinholeCamera
 
 
-def test_recovery_is_a_string_enum():
+def test_recovery_is_chosen_by_a_string_enum_or_given_as_an_object():
+    from eifslam.estimation.recovery_modes import FullRecovery, RecoveryMode, WindowRecovery
+
     cam = PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)
-    f = InformationFilter(cam, recovery="full")
-    assert f.recovery is Recovery.FULL and f.recovery == "full" and f.incremental is None
-    assert InformationFilter(cam).recovery == Recovery.INCREMENTAL
+    for how in ("full", Recovery.FULL):
+        f = InformationFilter(cam, recovery=how)
+        assert isinstance(f.recovery, FullRecovery) and f.incremental is None
+    f = InformationFilter(cam)
+    assert isinstance(f.recovery, WindowRecovery) and isinstance(f.recovery, RecoveryMode) and f.incremental is not None
+    given = FullRecovery()
+    assert InformationFilter(cam, recovery=given).recovery is given
     with pytest.raises(ConfigError):
         InformationFilter(cam, recovery="sometimes")
 
