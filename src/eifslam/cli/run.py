@@ -1,4 +1,5 @@
-"""``eifslam run SOURCE --out DIR``: SLAM on a folder, a KITTI/TUM/EuRoC/Strecha layout or a video."""
+"""``eifslam run SOURCE --out DIR``: SLAM on a folder, a KITTI/TUM/EuRoC/Strecha layout, a video or a
+ROS bag."""
 
 from __future__ import annotations
 
@@ -112,8 +113,14 @@ def announce(args: argparse.Namespace, config: SlamConfig) -> None:
 def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="run SLAM on an image sequence",
                        description="Run eifslam on SOURCE and write trajectory.tum, map.ply, report.json, report.html.")
-    p.add_argument("source", type=Path, help="data folder (images/ + camera.yaml), KITTI/TUM/EuRoC/Strecha layout, or video")
-    p.add_argument("--camera", type=Path, default=None, help="camera file (eifslam YAML, OpenCV YAML, KITTI calib.txt)")
+    p.add_argument("source", type=Path, help="data folder (images/ + camera.yaml), KITTI/TUM/EuRoC/Strecha layout, "
+                                              "video, ROS 1 .bag file or ROS 2 bag folder")
+    p.add_argument("--camera", type=Path, default=None,
+                   help="camera file (eifslam YAML, OpenCV YAML, KITTI calib.txt); for a ROS bag, instead of its "
+                        "CameraInfo")
+    p.add_argument("--topic", default=None, metavar="TOPIC",
+                   help="image topic of a ROS bag (sensor_msgs/Image or CompressedImage), e.g. /cam0/image_raw; "
+                        "default: the bag's only image topic")
     p.add_argument("--scale-distance", nargs=5, metavar=("KIND_A", "ID_A", "KIND_B", "ID_B", "LENGTH"), default=None,
                    help="known length between two states, e.g. 'pose 0 pose 10 2.5' or 'feature 12 feature 40 0.3'")
     p.add_argument("--save-session", type=Path, default=None, metavar="FILE",
@@ -211,7 +218,7 @@ def main(args: argparse.Namespace) -> int:
     else:
         config = make_config(args, base_config(args))
     ensure_output_dir(args.out)
-    seq = open_source(args.source, camera=args.camera)
+    seq = open_source(args.source, camera=args.camera, topic=args.topic)
     announce(args, config)
     rep = run_to_folder(seq, config, args.out, max_frames=args.max_frames, scale=scale, html=not args.no_html,
                         extra=provenance(args, config), quiet=args.quiet, verbose=not args.quiet,

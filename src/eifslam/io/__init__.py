@@ -3,7 +3,8 @@
 Names are imported lazily so that ``eifslam.io.trajectory`` (pure NumPy) can be used
 without importing OpenCV. Main entry points:
 
-* :func:`open_source` (``path, camera=None -> Sequence``): any supported layout;
+* :func:`open_source` (``path, camera=None, topic=None -> Sequence``): any supported
+  layout, ROS bags included;
 * :func:`load_camera`: any supported camera file;
 * :func:`read_tum` / :func:`write_tum`, :class:`Trajectory`;
 * :func:`write_ply` / :func:`read_ply`.
@@ -29,6 +30,7 @@ _EXPORTS = {
     "open_euroc": "euroc",
     "open_strecha": "strecha",
     "open_video": "video",
+    "open_rosbag": "rosbag",
     "Trajectory": "trajectory",
     "read_tum": "trajectory",
     "write_tum": "trajectory",

@@ -15,7 +15,8 @@ __all__ = ["detect_layout", "open_source"]
 def detect_layout(path: str | Path) -> str:
     """Name of the layout at ``path``.
 
-    Checked in this order: ``video`` (a file with a video extension), ``euroc``
+    Checked in this order: ``rosbag`` (a ``.bag`` file or a ROS 2 bag folder, see
+    :func:`~.rosbag.find_bag`), ``video`` (a file with a video extension), ``euroc``
     (``mav0/cam0/data.csv``), ``tum`` (``rgb.txt``), ``kitti`` (``calib.txt`` and
     ``image_0``/``image_2``), ``folder`` (``images/`` and ``camera.yaml``), ``strecha``
     (images with ``.camera`` files), ``folder`` (``images/`` or images in the folder).
@@ -27,14 +28,18 @@ def detect_layout(path: str | Path) -> str:
     """
     from .euroc import find_mav0
     from .kitti import is_kitti
+    from .rosbag import find_bag
     from .strecha import find_strecha
     from .video import VIDEO_EXTENSIONS
 
     p = Path(path)
+    if find_bag(p) is not None:
+        return "rosbag"
     if p.is_file():
         if p.suffix.lower() in VIDEO_EXTENSIONS:
             return "video"
-        raise DatasetError(f"{p}: not a video file ({', '.join(VIDEO_EXTENSIONS)}) or a folder")
+        raise DatasetError(f"{p}: not a video file ({', '.join(VIDEO_EXTENSIONS)}), a ROS bag (.bag) "
+                           "or a folder")
     if not p.is_dir():
         raise DatasetError(f"{p}: no such file or folder")
     if find_mav0(p) is not None:
@@ -53,18 +58,21 @@ def detect_layout(path: str | Path) -> str:
         return "folder"
     raise DatasetError(
         f"{p}: unrecognised layout (expected images/ + camera.yaml, KITTI, TUM RGB-D, "
-        "EuRoC, Strecha or a video file)"
+        "EuRoC, Strecha, a ROS 2 bag or a video file)"
     )
 
 
-def open_source(path: str | Path, camera: PinholeCamera | str | Path | None = None) -> Sequence:
-    """Open a sequence from a folder or video file, detecting its layout.
+def open_source(path: str | Path, camera: PinholeCamera | str | Path | None = None,
+                topic: str | None = None) -> Sequence:
+    """Open a sequence from a folder, video file or ROS bag, detecting its layout.
 
     Parameters
     ----------
-    path : data set folder or video file.
+    path : data set folder, video file, ROS 1 ``.bag`` file or ROS 2 bag folder.
     camera : a :class:`PinholeCamera` or a camera file (any format of
         :func:`~eifslam.io.cameras.load_camera`) overriding the data set's own.
+    topic : the image topic of a ROS bag (default: the bag's only image topic); only
+        for bags.
 
     Returns
     -------
@@ -75,10 +83,17 @@ def open_source(path: str | Path, camera: PinholeCamera | str | Path | None = No
     Raises
     ------
     DatasetError, CalibrationError
-        Unrecognised layout or a missing / malformed file (names the file).
+        Unrecognised layout, a missing / malformed file (names the file), or a topic
+        given for a source that is not a ROS bag.
     """
     kind = detect_layout(path)
     p = Path(path)
+    if kind == "rosbag":
+        from .rosbag import open_rosbag
+
+        return open_rosbag(p, camera, topic)
+    if topic is not None:
+        raise DatasetError(f"{p}: not a ROS bag; a topic ({topic}) applies to ROS bags only")
     if kind == "video":
         from .video import open_video
 

@@ -10,12 +10,14 @@ one-line error, and the user resizes the images and the camera file together.
 
 from __future__ import annotations
 
+import io
 import struct
 from pathlib import Path
+from typing import BinaryIO
 
 from ..errors import ImageError
 
-__all__ = ["MAX_IMAGE_PIXELS", "MAX_IMAGE_SIDE", "header_size", "check_image_size"]
+__all__ = ["MAX_IMAGE_PIXELS", "MAX_IMAGE_SIDE", "header_size", "encoded_size", "check_image_size"]
 
 #: largest image accepted, in pixels (width x height): 40 megapixels, i.e. 120 MB as
 #: 8-bit BGR before the front end's own buffers (a 7000 x 5000 camera still fits)
@@ -135,17 +137,29 @@ def header_size(path: str | Path) -> tuple[int, int] | None:
     path = Path(path)
     try:
         with open(path, "rb") as fh:
-            h = fh.read(64)
-            for parse in (_png, _bmp, _pnm, _webp):
-                size = parse(h)
-                if size is not None:
-                    return int(size[0]), int(size[1])
-            if h[:2] == b"\xff\xd8":
-                return _jpeg(fh)
-            if h[:2] in (b"II", b"MM"):
-                return _tiff(fh, h)
+            return _header_size(fh)
     except OSError as exc:
         raise ImageError(f"{path}: cannot read image ({exc.strerror or exc})") from None
+
+
+def encoded_size(data: bytes) -> tuple[int, int] | None:
+    """``(width, height)`` that the header of an encoded image in memory claims (the
+    bytes of a PNG or JPEG file, as a ``sensor_msgs/CompressedImage`` holds them); None
+    as :func:`header_size`."""
+    return _header_size(io.BytesIO(data))
+
+
+def _header_size(fh: BinaryIO) -> tuple[int, int] | None:
+    try:
+        h = fh.read(64)
+        for parse in (_png, _bmp, _pnm, _webp):
+            size = parse(h)
+            if size is not None:
+                return int(size[0]), int(size[1])
+        if h[:2] == b"\xff\xd8":
+            return _jpeg(fh)
+        if h[:2] in (b"II", b"MM"):
+            return _tiff(fh, h)
     except struct.error:
         return None
     return None

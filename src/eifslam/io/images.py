@@ -9,9 +9,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DatasetError, ImageError
-from .image_header import check_image_size, header_size
+from .image_header import check_image_size, encoded_size, header_size
 
-__all__ = ["IMAGE_EXTENSIONS", "read_image", "image_size", "list_images"]
+__all__ = ["IMAGE_EXTENSIONS", "read_image", "decode_image", "eight_bit", "image_size", "list_images"]
 
 #: file name endings recognised as images (lower case)
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
@@ -49,10 +49,51 @@ def read_image(path: str | Path, grayscale: bool = False) -> NDArray[np.uint8]:
     if img is None or img.size == 0:
         raise ImageError(f"{path}: cannot decode image (corrupt or unsupported format)")
     check_image_size(img.shape[1], img.shape[0], str(path))  # formats without a parsed header
+    return eight_bit(img)
+
+
+def decode_image(data: bytes | NDArray[np.uint8], where: str, grayscale: bool = False) -> NDArray[np.uint8]:
+    """Decode an encoded image held in memory (the bytes of a PNG, JPEG, ... file), as
+    :func:`read_image` reads a file.
+
+    Parameters
+    ----------
+    data : the encoded bytes.
+    where : what the image is, for messages (a file, a message of a ROS bag).
+    grayscale : convert to one channel.
+
+    Returns
+    -------
+    As :func:`read_image`.
+
+    Raises
+    ------
+    ImageError
+        Empty or undecodable data, or a header claiming a size over the memory budget
+        (checked before decoding); the message starts with ``where``.
+    """
+    buf = np.frombuffer(data, np.uint8) if isinstance(data, (bytes, bytearray, memoryview)) \
+        else np.ascontiguousarray(data, np.uint8).reshape(-1)
+    if buf.size == 0:
+        raise ImageError(f"{where}: empty image data")
+    size = encoded_size(buf.tobytes())
+    if size is not None:
+        check_image_size(size[0], size[1], where)
+    flags = (cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_ANYCOLOR) | cv2.IMREAD_ANYDEPTH
+    img = cv2.imdecode(buf, flags)
+    if img is None or img.size == 0:
+        raise ImageError(f"{where}: cannot decode image (corrupt or unsupported format)")
+    check_image_size(img.shape[1], img.shape[0], where)
+    return eight_bit(img)
+
+
+def eight_bit(img: NDArray) -> NDArray[np.uint8]:
+    """An image as 8 bits per channel: 16-bit data keeps the 8 highest bits it uses
+    (:func:`sensor_bits`), other depths are scaled to 0..255; uint8 is returned as is."""
     if img.dtype == np.uint16:
-        img = (img >> (sensor_bits(int(img.max())) - 8)).astype(np.uint8)
-    elif img.dtype != np.uint8:
-        img = cv2.convertScaleAbs(img, alpha=255.0 / max(float(img.max()), 1.0))
+        return (img >> (sensor_bits(int(img.max())) - 8)).astype(np.uint8)
+    if img.dtype != np.uint8:
+        return cv2.convertScaleAbs(img, alpha=255.0 / max(float(img.max()), 1.0))
     return img
 
 

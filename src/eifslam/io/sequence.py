@@ -1,7 +1,7 @@
 """Image sequences as the loaders return them: a camera, lazy frames, ground truth apart.
 
 Every loader (:mod:`.folder`, :mod:`.kitti`, :mod:`.tum_rgbd`, :mod:`.euroc`,
-:mod:`.strecha`, :mod:`.video`) returns a :class:`Sequence`. Images are read only when
+:mod:`.strecha`, :mod:`.video`, :mod:`.rosbag`) returns a :class:`Sequence`. Images are read only when
 :meth:`Sequence.load` is called. Ground truth is *not* an attribute: it is returned by
 :meth:`Sequence.ground_truth`, which is meant for scoring only; the estimator never needs
 it.
@@ -36,9 +36,10 @@ class Frame:
     timestamp : float
         Seconds (data set clock; the frame index when the data set has no times).
     path : Path or None
-        Image file; ``None`` for video frames.
+        Image file; ``None`` for video frames and ROS bag messages.
     video_index : int or None
-        Frame number inside the video file; ``None`` for image files.
+        Frame number inside the video file, or message number on the ROS bag topic (in
+        bag order); ``None`` for image files.
     """
 
     index: int
@@ -48,7 +49,7 @@ class Frame:
 
     @property
     def name(self) -> str:
-        """Short label for messages: the file name, or ``frame N`` of a video."""
+        """Short label for messages: the file name, or ``frame N`` of a video or bag topic."""
         return self.path.name if self.path is not None else f"frame {self.video_index}"
 
 
@@ -67,7 +68,7 @@ class Sequence:
         In time order, timestamps strictly increasing.
     kind : str
         Layout it was read from: ``folder``, ``kitti``, ``tum``, ``euroc``, ``strecha``,
-        ``video``.
+        ``video``, ``rosbag``.
     ground_truth_loader : callable returning Trajectory or None, optional
         Called (once) by :meth:`ground_truth`.
     check_size : bool
