@@ -247,6 +247,10 @@ class DenseEKF:
         """Nothing is marginalised: ``x``."""
         return self.x
 
+    def recent_features(self, track_ids, steps: int) -> NDArray[np.bool_]:
+        """Every feature is current: all True ``(N,)``."""
+        return np.ones(len(np.asarray(track_ids).reshape(-1)), bool)
+
     def set_estimate(self, x: Array) -> None:
         """Replace the mean by ``x`` ``(dim,)`` (e.g. a bundle adjustment's); ``P`` is kept."""
         x = np.asarray(x, float)

@@ -103,6 +103,11 @@ class Backend(Protocol):
         """Bring every state to the current solution; returns ``x``."""
         ...
 
+    def recent_features(self, track_ids, steps: int) -> NDArray[np.bool_]:
+        """Which map features ``(N,)`` were measured in the last ``steps`` recoveries (the
+        local map; all of them where the back end does not tell)."""
+        ...
+
     def recent_estimate(self, steps: int) -> Array:
         """Bring the states of about the last ``steps`` keyframes to the current solution,
         at a cost that does not grow with the map; returns ``x``."""

@@ -428,6 +428,16 @@ class InformationFilter:
         :meth:`complete_estimate`). Full recovery: nothing to do."""
         return self.recovery.recent(self, steps)
 
+    def recent_features(self, track_ids, steps: int) -> NDArray[np.bool_]:
+        """Which of the map features ``track_ids (N,)`` were measured in the last ``steps``
+        recoveries: the local map, whose estimate :meth:`recent_estimate` keeps exact and
+        whose measurements the recovery takes in at a bounded cost (all of them with the
+        full recovery)."""
+        ids = np.asarray(track_ids, np.int64).reshape(-1)
+        if not len(ids):
+            return np.zeros(0, bool)
+        return self.recovery.measured_within(self.layout.feature_columns(ids)[:, 0], steps)
+
     def complete_estimate(self) -> Array:
         """Back-substitute every marginalised state (``O(n)``), so that ``x`` equals the full
         solve of the information as of the last :meth:`recover_active`. Full recovery:

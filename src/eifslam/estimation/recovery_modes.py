@@ -65,6 +65,11 @@ class RecoveryMode(Protocol):
         """Bring the states of about the last ``steps`` keyframes to the solution."""
         ...
 
+    def measured_within(self, starts: IntArray, steps: int) -> NDArray[np.bool_]:
+        """Whether the states whose blocks start at ``starts`` were measured in the last
+        ``steps`` recoveries (all True where the recovery does not tell)."""
+        ...
+
     def invalidate(self) -> None:
         """``I`` or ``x`` were replaced from outside: start again at the next recovery."""
         ...
@@ -116,6 +121,9 @@ class FullRecovery:
 
     def recent(self, filt: "InformationFilter", steps: int) -> Array:
         return filt.x
+
+    def measured_within(self, starts: IntArray, steps: int) -> NDArray[np.bool_]:
+        return np.ones(np.shape(starts), bool)
 
     def invalidate(self) -> None:
         pass
@@ -207,6 +215,9 @@ class WindowRecovery:
         if self.incremental.valid:
             self.incremental.recent_solution(filt.x, 2 * int(steps))
         return filt.x
+
+    def measured_within(self, starts: IntArray, steps: int) -> NDArray[np.bool_]:
+        return self.incremental.measured_within(starts, steps)
 
     def invalidate(self) -> None:
         self.incremental.on_invalidate()

@@ -185,9 +185,16 @@ class Mapper:
         return ids, uv
 
     def reobserve(self, k: int, p: Array, q: Array) -> int:
-        """Find map features that tracking lost again in frame *k*, by projecting them
-        with the pose guess ``(p, q)`` and matching descriptors nearby
-        (:meth:`FrontEnd.reobserve`); returns how many were found."""
+        """Find map features of the local map that tracking lost again in frame *k*, by
+        projecting them with the pose guess ``(p, q)`` and matching descriptors nearby
+        (:meth:`FrontEnd.reobserve`); returns how many were found.
+
+        The local map is the features measured in the last :data:`RECENT_STEPS` keyframes
+        (:meth:`InformationFilter.recent_features`): their estimate is exact and a new
+        measurement of them costs the recovery what any other does. An older feature seen
+        again (a revisit) is the loop closer's to find: measuring it here would make the
+        recovery take back its marginalisation, up to a solve of the whole state, at every
+        frame of the revisit."""
         r = self.config.reobserve_px
         filt = self.filter
         if not r or filt.layout.n_features == 0:
@@ -195,7 +202,7 @@ class Mapper:
         fids, X = filt.features()
         fids = np.asarray(fids, np.int64)
         seen, _ = self.frontend.map_observations(k)
-        cand = ~np.isin(fids, seen)
+        cand = ~np.isin(fids, seen) & filt.recent_features(fids, RECENT_STEPS)
         if not cand.any():
             return 0
         fids, X = fids[cand], X[cand]
