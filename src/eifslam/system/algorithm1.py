@@ -160,7 +160,7 @@ def algorithm1(k: int, reference: RelativePoseResult | OnMap, tracker: Tracker, 
         backend.fuse_relative([zr_zt])                                   #    ZR and ZT jointly,
     elif zr_zt is not None:
         tracker.rejected_relative.append(zr_zt)
-    backend.fuse_features(new.zm)                                        #    every Zm of the image
+    mapper.fuse_zm(new.zm)                                               #    every Zm of the image
     t2 = time.perf_counter()
     if recover:
         mapper.recover()                                                 #    and the state (eq. 9)

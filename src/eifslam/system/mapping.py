@@ -35,6 +35,11 @@ _GREY = np.array([200, 200, 200], np.uint8)
 #: back substitution (loop verification, the end of the run).
 RECENT_STEPS = 30
 
+#: Keyframes the ``Zm`` of features older than the local map wait before they are fused
+#: together (:meth:`Mapper.fuse_zm`): a revisit then costs one solve of the whole state per
+#: this many keyframes instead of one per keyframe.
+DEFER_KEYFRAMES = 30
+
 
 def project(camera: PinholeCamera, p: Array, q: Array, X: Array) -> tuple[Array, Array]:
     """Pixels and depths of world points seen from poses (the ``Zm`` model).
@@ -99,6 +104,8 @@ class Mapper:
         self._track_obs: dict[int, list[tuple[int, Array]]] = {}
         self._track_frames: dict[int, set[int]] | None = {}  # per track: frames in _track_obs (None: derive)
         self._colors: dict[int, NDArray[np.uint8]] = {}
+        self._deferred: list[FeatureObservations] = []  # Zm of features older than the local map
+        self._deferred_for = 0  # keyframes the oldest of them has waited
 
     # -- sessions -----------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -214,6 +221,32 @@ class Mapper:
             return 0
         return self.frontend.reobserve(k, fids[vis], h[vis], r)
 
+    def fuse_zm(self, zm: FeatureObservations) -> FeatureObservations:
+        """Algorithm 1 step 5's ``Zm``: those of the local map (features measured in the
+        last :data:`RECENT_STEPS` keyframes, new ones included) are fused now; those of
+        older features, seen again on a revisit, wait (:meth:`flush_deferred`).
+
+        Fusing a measurement of a state the recovery has marginalised makes it take the
+        marginalisation back, which for a feature of a lap ago costs a solve of the whole
+        state; on a revisit every keyframe sees more of them. Waiting changes only when
+        they enter: a measurement is linearised when it is fused, and the information
+        form is a sum. They are fused together every :data:`DEFER_KEYFRAMES` keyframes
+        (one solve for the lot), before a session is saved and at the end of the run.
+        Returns the ``Zm`` fused now."""
+        recent = self.filter.recent_features(zm.feature, RECENT_STEPS)
+        if not np.all(recent):
+            self._deferred.append(zm.subset(~recent))
+            zm = zm.subset(recent)
+        return self.filter.fuse_features(zm)
+
+    def flush_deferred(self) -> int:
+        """Fuse the ``Zm`` that waited (:meth:`fuse_zm`); returns how many were fused."""
+        if not self._deferred:
+            return 0
+        zm = FeatureObservations.concatenate(self._deferred)
+        self._deferred, self._deferred_for = [], 0
+        return len(self.filter.fuse_features(zm))
+
     def recover(self) -> None:
         """Recover the state after fusing: the active window, then the states marginalised
         in the last :data:`RECENT_STEPS` keyframes (their back substitution).
@@ -224,6 +257,10 @@ class Mapper:
         recent ones are made exact each keyframe. Back-substituting every state would cost
         ``O(n)`` a keyframe; the older states are brought up to date where the whole
         estimate is read (:meth:`InformationFilter.complete_estimate`)."""
+        if self._deferred:
+            self._deferred_for += 1
+            if self._deferred_for >= DEFER_KEYFRAMES:
+                self.flush_deferred()
         self.filter.recover_active()
         self.filter.recent_estimate(RECENT_STEPS)
 

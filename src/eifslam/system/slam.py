@@ -329,6 +329,8 @@ class Slam:
         kept (the run is not lost).
         """
         rep = FinishReport()
+        if self.mapper.flush_deferred():  # the Zm of a revisit that waited (Mapper.fuse_zm)
+            self.filter.recover_active()
         if retry:
             try:
                 rep.added = self.retry_lost(images=images)
@@ -395,7 +397,10 @@ class Slam:
 
     def save(self, path: str | Path) -> None:
         """Save the whole session (filter, front end, results) to a file
-        (:func:`~.session.save_session`)."""
+        (:func:`~.session.save_session`); measurements that wait to be fused are fused first
+        (:meth:`~.mapping.Mapper.flush_deferred`)."""
+        if self.mapper.flush_deferred():
+            self.filter.recover_active()
         save_session(self, path)
 
     @staticmethod
