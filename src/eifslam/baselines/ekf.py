@@ -247,7 +247,7 @@ class DenseEKF:
         """Nothing is marginalised: ``x``."""
         return self.x
 
-    def recent_features(self, track_ids, steps: int) -> NDArray[np.bool_]:
+    def recent_features(self, track_ids, steps: int | None = None) -> NDArray[np.bool_]:
         """Every feature is current: all True ``(N,)``."""
         return np.ones(len(np.asarray(track_ids).reshape(-1)), bool)
 

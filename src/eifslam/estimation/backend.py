@@ -103,9 +103,10 @@ class Backend(Protocol):
         """Bring every state to the current solution; returns ``x``."""
         ...
 
-    def recent_features(self, track_ids, steps: int) -> NDArray[np.bool_]:
-        """Which map features ``(N,)`` were measured in the last ``steps`` recoveries (the
-        local map; all of them where the back end does not tell)."""
+    def recent_features(self, track_ids, steps: int | None = None) -> NDArray[np.bool_]:
+        """Which map features ``(N,)`` were measured in the last ``steps`` recoveries (None:
+        those in the active window, the local map; all of them where the back end does
+        not tell)."""
         ...
 
     def recent_estimate(self, steps: int) -> Array:

@@ -428,11 +428,11 @@ class InformationFilter:
         :meth:`complete_estimate`). Full recovery: nothing to do."""
         return self.recovery.recent(self, steps)
 
-    def recent_features(self, track_ids, steps: int) -> NDArray[np.bool_]:
+    def recent_features(self, track_ids, steps: int | None = None) -> NDArray[np.bool_]:
         """Which of the map features ``track_ids (N,)`` were measured in the last ``steps``
-        recoveries: the local map, whose estimate :meth:`recent_estimate` keeps exact and
-        whose measurements the recovery takes in at a bounded cost (all of them with the
-        full recovery)."""
+        recoveries; by default (None) recently enough to be in the recovery's active
+        window, the local map whose new measurements the recovery takes in at a cost
+        bounded by the window (all of them with the full recovery)."""
         ids = np.asarray(track_ids, np.int64).reshape(-1)
         if not len(ids):
             return np.zeros(0, bool)

@@ -65,9 +65,10 @@ class RecoveryMode(Protocol):
         """Bring the states of about the last ``steps`` keyframes to the solution."""
         ...
 
-    def measured_within(self, starts: IntArray, steps: int) -> NDArray[np.bool_]:
+    def measured_within(self, starts: IntArray, steps: int | None) -> NDArray[np.bool_]:
         """Whether the states whose blocks start at ``starts`` were measured in the last
-        ``steps`` recoveries (all True where the recovery does not tell)."""
+        ``steps`` recoveries (None: recently enough to be in the active window; all True
+        where the recovery does not tell)."""
         ...
 
     def invalidate(self) -> None:
@@ -122,7 +123,7 @@ class FullRecovery:
     def recent(self, filt: "InformationFilter", steps: int) -> Array:
         return filt.x
 
-    def measured_within(self, starts: IntArray, steps: int) -> NDArray[np.bool_]:
+    def measured_within(self, starts: IntArray, steps: int | None) -> NDArray[np.bool_]:
         return np.ones(np.shape(starts), bool)
 
     def invalidate(self) -> None:
@@ -216,8 +217,9 @@ class WindowRecovery:
             self.incremental.recent_solution(filt.x, 2 * int(steps))
         return filt.x
 
-    def measured_within(self, starts: IntArray, steps: int) -> NDArray[np.bool_]:
-        return self.incremental.measured_within(starts, steps)
+    def measured_within(self, starts: IntArray, steps: int | None) -> NDArray[np.bool_]:
+        inc = self.incremental
+        return inc.measured_within(starts, inc.feature_window if steps is None else steps)
 
     def invalidate(self) -> None:
         self.incremental.on_invalidate()

@@ -35,7 +35,7 @@ _GREY = np.array([200, 200, 200], np.uint8)
 #: back substitution (loop verification, the end of the run).
 RECENT_STEPS = 30
 
-#: Keyframes the ``Zm`` of features older than the local map wait before they are fused
+#: Keyframes the ``Zm`` of features outside the local map wait before they are fused
 #: together (:meth:`Mapper.fuse_zm`): a revisit then costs one solve of the whole state per
 #: this many keyframes instead of one per keyframe.
 DEFER_KEYFRAMES = 30
@@ -196,7 +196,7 @@ class Mapper:
         projecting them with the pose guess ``(p, q)`` and matching descriptors nearby
         (:meth:`FrontEnd.reobserve`); returns how many were found.
 
-        The local map is the features measured in the last :data:`RECENT_STEPS` keyframes
+        The local map is the features of the recovery's active window
         (:meth:`InformationFilter.recent_features`): their estimate is exact and a new
         measurement of them costs the recovery what any other does. An older feature seen
         again (a revisit) is the loop closer's to find: measuring it here would make the
@@ -209,7 +209,7 @@ class Mapper:
         fids, X = filt.features()
         fids = np.asarray(fids, np.int64)
         seen, _ = self.frontend.map_observations(k)
-        cand = ~np.isin(fids, seen) & filt.recent_features(fids, RECENT_STEPS)
+        cand = ~np.isin(fids, seen) & filt.recent_features(fids)
         if not cand.any():
             return 0
         fids, X = fids[cand], X[cand]
@@ -222,9 +222,9 @@ class Mapper:
         return self.frontend.reobserve(k, fids[vis], h[vis], r)
 
     def fuse_zm(self, zm: FeatureObservations) -> FeatureObservations:
-        """Algorithm 1 step 5's ``Zm``: those of the local map (features measured in the
-        last :data:`RECENT_STEPS` keyframes, new ones included) are fused now; those of
-        older features, seen again on a revisit, wait (:meth:`flush_deferred`).
+        """Algorithm 1 step 5's ``Zm``: those of the local map (the features of the
+        recovery's active window, new ones included) are fused now; those of features the
+        recovery has marginalised, seen again, wait (:meth:`flush_deferred`).
 
         Fusing a measurement of a state the recovery has marginalised makes it take the
         marginalisation back, which for a feature of a lap ago costs a solve of the whole
@@ -233,7 +233,7 @@ class Mapper:
         form is a sum. They are fused together every :data:`DEFER_KEYFRAMES` keyframes
         (one solve for the lot), before a session is saved and at the end of the run.
         Returns the ``Zm`` fused now."""
-        recent = self.filter.recent_features(zm.feature, RECENT_STEPS)
+        recent = self.filter.recent_features(zm.feature)
         if not np.all(recent):
             self._deferred.append(zm.subset(~recent))
             zm = zm.subset(recent)
