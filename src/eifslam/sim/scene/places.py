@@ -5,11 +5,16 @@ fifth of each view, taken at the depth of the scene it shows, lies inside the ot
 at a like depth. Here a view is a regular grid of pixels (:data:`GRID`); each is lifted to
 the world point the scene shows there (the nearest front-facing surface its ray meets,
 as the renderer draws it). That point *lies inside the other view at a like depth* when
-it projects inside the other image, in front of the camera, and the other view's own
-scene depth at that pixel agrees with the point's depth there to within
-:data:`DEPTH_TOLERANCE` (relative): the other camera sees that very point, not a wall in
-front of it. Pixels that show no surface count in neither the fraction's numerator nor its
-denominator.
+
+* it projects inside the other image, in front of the camera;
+* the other view's own scene depth at that pixel agrees with the point's depth there to
+  within :data:`DEPTH_TOLERANCE` (relative): the other camera sees that very point, not a
+  wall in front of it;
+* its depths in the two views differ by at most the factor :data:`DEPTH_RATIO`: the two
+  cameras see it at a like scale, as descriptors can match it (a wall seen from its two
+  ends, at grazing angles, is not the same place).
+
+Pixels that show no surface count in neither the fraction's numerator nor its denominator.
 
 Two walls that carry the same photograph are different places: their points lie at
 different positions in the world, so a view of one does not contain the other, however
@@ -38,7 +43,7 @@ from .layout import BuiltinScene
 Array = NDArray[np.float64]
 
 __all__ = ["same_place", "view_overlap", "view_points", "scene_depth", "GRID", "MIN_FRACTION",
-           "DEPTH_TOLERANCE"]
+           "DEPTH_TOLERANCE", "DEPTH_RATIO"]
 
 #: pixel grid (columns, rows) that stands for a view
 GRID = (32, 24)
@@ -46,6 +51,8 @@ GRID = (32, 24)
 MIN_FRACTION = 0.2
 #: relative depth difference under which a point counts as seen by the other view
 DEPTH_TOLERANCE = 0.1
+#: largest ratio of a point's depths in the two views for a like depth
+DEPTH_RATIO = 1.5
 _NEAR = 0.01  # metres, as the renderer
 
 # per scene (by identity, dropped with the scene): frame -> (world points, valid mask)
@@ -165,9 +172,10 @@ def view_overlap(scene: BuiltinScene, i: int, j: int) -> float:
     X, valid = view_points(scene, i)
     if not valid.any():
         return 0.0
+    z_i = (X[valid] - scene.positions[i]) @ scene.rotation_wc(i)[:, 2]
     uv, z = scene.project(j, X[valid])
     cam = scene.camera
-    ins = (z > _NEAR) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= cam.width - 0.5) \
+    ins = (z > _NEAR) & (np.maximum(z, z_i) <= DEPTH_RATIO * np.minimum(z, z_i)) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= cam.width - 0.5) \
         & (uv[:, 1] >= -0.5) & (uv[:, 1] <= cam.height - 0.5)
     seen = np.zeros(len(z), bool)
     if ins.any():
