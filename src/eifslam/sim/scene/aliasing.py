@@ -240,9 +240,9 @@ def make_aliasing_scene(n_frames: int = 400, width: int = 640, height: int = 480
             "Panels in path order, side by side (sides face -y, +x, +y, -x; the path starts "
             "between U2 and U1): " + " / ".join(" ".join(side) for side in PANELS) + ".\n"
             "Photographs: " + ", ".join(f"{k} {v}" for k, v in sorted(photos.items())) + ".\n"
-            f"No place is seen twice before frame {last} (the last part); frames from {back} on "
-            "pass the start again (the one true loop). Every loop closed before the last part "
-            "is false.\n"
+            f"The path comes back to no place it has passed before frame {last} (its last "
+            f"part); frames from {back} on pass the start again (the one true loop). Every loop "
+            "closed before the last part is false.\n"
             "World frame: origin on the ground at the block centre, z up, metres. Poses are "
             "camera-to-world (camera x right, y down, z forward). Exact ground truth.")
     return AliasingScene(
