@@ -1,10 +1,13 @@
 """``eifslam render``: write a built-in scene as a data set.
 
 ``--scene boxes`` (default) is the paper's first experiment, ``--scene loop`` the loop
-world (two laps round a block of textured walls, for loop closure). Examples::
+world (two laps round a block of textured walls, for loop closure), ``--scene aliasing``
+one lap round a block whose walls repeat the same photographs (for false loops).
+Examples::
 
     eifslam render --out builtin --frames 54 --noise 1.0
     eifslam render --scene loop --out loopworld
+    eifslam render --scene aliasing --out aliasing
 """
 
 from __future__ import annotations
@@ -20,35 +23,40 @@ __all__ = ["add_parser", "run"]
 #: most frames ``render`` writes (one loop round the table; 54 in the paper)
 MAX_FRAMES = 10_000
 #: per scene: frames, width, height, horizontal field of view (degrees), laps
-DEFAULTS = {"boxes": (54, 1024, 768, 56.0, 1), "loop": (1040, 640, 480, 60.0, 2)}
+DEFAULTS = {"boxes": (54, 1024, 768, 56.0, 1), "loop": (1040, 640, 480, 60.0, 2),
+            "aliasing": (400, 640, 480, 60.0, 1)}
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> argparse.ArgumentParser:
     """Register the ``render`` sub-command."""
     p = sub.add_parser(
         "render",
-        help="render a built-in scene (three boxes on a table, or the loop world) to a data set folder",
+        help="render a built-in scene (three boxes on a table, the loop world or the aliasing "
+        "scene) to a data set folder",
         description="Render a built-in scene into the data set folder layout: images/, "
         "camera.yaml, times.txt, groundtruth.tum (and boxes.json for the boxes). "
         "--scene boxes: the paper's first experiment (three boxes on an oval table, one loop "
         "of a camera round it). --scene loop: the loop world (a camera walking laps round a "
-        "block of walls with posters and pillars, photographs from scikit-image).",
+        "block of walls with posters and pillars, photographs from scikit-image). --scene "
+        "aliasing: one lap and a little more round a block whose wall panels repeat the same "
+        "photographs, facing different ways and the same way at other places (every loop "
+        "before the path's last part is false, the last part comes back to the start).",
     )
     p.add_argument("--scene", choices=tuple(DEFAULTS), default="boxes",
                    help="which scene (default boxes)")
     p.add_argument("--out", required=True, help="output folder (created if missing)")
     p.add_argument("--frames", type=int, default=None,
-                   help="number of images (default 54 for boxes, 1040 for loop)")
+                   help="number of images (default 54 for boxes, 1040 for loop, 400 for aliasing)")
     p.add_argument("--laps", type=int, default=None,
                    help="laps of the path, loop scene only (default 2)")
     p.add_argument("--noise", type=float, default=0.0, metavar="SIGMA",
                    help="Gaussian pixel noise, grey levels (default 0)")
     p.add_argument("--blur", type=float, default=0.0, metavar="SIGMA",
                    help="Gaussian blur, pixels (default 0)")
-    p.add_argument("--width", type=int, default=None, help="image width (default 1024 boxes, 640 loop)")
-    p.add_argument("--height", type=int, default=None, help="image height (default 768 boxes, 480 loop)")
+    p.add_argument("--width", type=int, default=None, help="image width (default 1024 boxes, 640 loop and aliasing)")
+    p.add_argument("--height", type=int, default=None, help="image height (default 768 boxes, 480 loop and aliasing)")
     p.add_argument("--hfov", type=float, default=None,
-                   help="horizontal field of view, degrees (default 56 boxes, 60 loop)")
+                   help="horizontal field of view, degrees (default 56 boxes, 60 loop and aliasing)")
     p.add_argument("--seed", type=int, default=0, help="seed of textures, wobble and noise")
     p.set_defaults(func=run)
     return p
@@ -61,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
     from ..io.files import ensure_output_dir
     from ..io.image_header import check_image_size
     from ..sim.scene import make_scene
+    from ..sim.scene.aliasing import make_aliasing_scene
     from ..sim.scene.loop import make_loop_scene
     from ..sim.scene.render import render_scene
 
@@ -88,6 +97,9 @@ def run(args: argparse.Namespace) -> int:
     if args.scene == "loop":
         scene = make_loop_scene(n_frames=frames, n_laps=laps, width=width, height=height,
                                 hfov_deg=hfov, seed=args.seed)
+    elif args.scene == "aliasing":
+        scene = make_aliasing_scene(n_frames=frames, width=width, height=height, hfov_deg=hfov,
+                                    seed=args.seed)
     else:
         scene = make_scene(n_frames=frames, width=width, height=height, hfov_deg=hfov, seed=args.seed)
     t0 = time.perf_counter()

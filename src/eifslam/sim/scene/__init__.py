@@ -1,9 +1,12 @@
-"""The built-in scenes: the paper's first experiment (three boxes on an oval table) and
-the loop world (two laps round a block of textured walls, :mod:`eifslam.sim.scene.loop`).
+"""The built-in scenes: the paper's first experiment (three boxes on an oval table), the
+loop world (two laps round a block of textured walls, :mod:`eifslam.sim.scene.loop`) and
+the aliasing scene (one lap round a block whose walls repeat the same photographs,
+:mod:`eifslam.sim.scene.aliasing`).
 
 Pure parts (importing them loads neither OpenCV nor matplotlib):
-:func:`make_scene`, :func:`make_loop_scene`, :class:`BuiltinScene`, :class:`Box`,
-:func:`estimate_box_ratio`.
+:func:`make_scene`, :func:`make_loop_scene`, :func:`make_aliasing_scene`,
+:class:`BuiltinScene`, :class:`Box`, :func:`estimate_box_ratio`, and :func:`same_place`
+(whether two frames see the same place, :mod:`eifslam.sim.scene.places`).
 Rendering (:func:`render_frame`, :func:`render_scene`) uses OpenCV and is imported lazily,
 on first access.
 
@@ -19,7 +22,9 @@ from typing import Any
 
 from .boxes import RectangleFit, estimate_box_ratio, fit_rectangle, top_face_mask
 from .layout import Box, BuiltinScene, Surface, make_scene
+from .aliasing import AliasingScene, make_aliasing_scene
 from .loop import make_loop_scene
+from .places import same_place
 
 __all__ = [
     "Box",
@@ -27,6 +32,9 @@ __all__ = [
     "Surface",
     "make_scene",
     "make_loop_scene",
+    "make_aliasing_scene",
+    "AliasingScene",
+    "same_place",
     "estimate_box_ratio",
     "fit_rectangle",
     "top_face_mask",

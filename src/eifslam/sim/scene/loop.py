@@ -178,23 +178,26 @@ def _street_surfaces(rng: np.random.Generator, cells: list[tuple[str, int]], see
     return out
 
 
-def path_length(distance: float = PATH_DISTANCE) -> float:
-    """Length of one lap (metres) of the rounded rectangle ``distance`` from the block."""
-    return 4.0 * (BLOCK_HALF[0] + BLOCK_HALF[1]) + 2.0 * np.pi * distance
+def path_length(distance: float = PATH_DISTANCE, half: tuple[float, float] = BLOCK_HALF) -> float:
+    """Length of one lap (metres) of the rounded rectangle ``distance`` from a block of half
+    sizes ``half`` (default: the loop world's block)."""
+    return 4.0 * (half[0] + half[1]) + 2.0 * np.pi * distance
 
 
-def _foot(station: Array) -> tuple[Array, Array]:
-    """Nearest block point ``(N, 3)`` and outward unit normal ``(N, 3)`` (world) of the lap-1
-    path at ``station`` metres along it (modulo one lap) from its start."""
-    hx, hy = BLOCK_HALF
-    arc = 0.5 * np.pi * PATH_DISTANCE
+def _foot(station: Array, half: tuple[float, float] = BLOCK_HALF,
+          distance: float = PATH_DISTANCE) -> tuple[Array, Array]:
+    """Nearest block point ``(N, 3)`` and outward unit normal ``(N, 3)`` (world) of the
+    rounded rectangle ``distance`` from the block ``|x| <= half[0], |y| <= half[1]``, at
+    ``station`` metres along it (modulo one lap) from the middle of its ``-y`` side."""
+    hx, hy = half
+    arc = 0.5 * np.pi * distance
     # pieces in order: (length, start foot point, direction of the foot, start normal angle)
     pieces = [(hx, (0.0, -hy), (1.0, 0.0), -0.5 * np.pi), (arc, (hx, -hy), (0.0, 0.0), -0.5 * np.pi),
               (2 * hy, (hx, -hy), (0.0, 1.0), 0.0), (arc, (hx, hy), (0.0, 0.0), 0.0),
               (2 * hx, (hx, hy), (-1.0, 0.0), 0.5 * np.pi), (arc, (-hx, hy), (0.0, 0.0), 0.5 * np.pi),
               (2 * hy, (-hx, hy), (0.0, -1.0), np.pi), (arc, (-hx, -hy), (0.0, 0.0), np.pi),
               (hx, (-hx, -hy), (1.0, 0.0), 1.5 * np.pi)]
-    s = np.mod(np.asarray(station, float), path_length())
+    s = np.mod(np.asarray(station, float), path_length(distance, half))
     foot = np.zeros((len(s), 3))
     ang = np.zeros(len(s))
     start = 0.0
@@ -203,18 +206,22 @@ def _foot(station: Array) -> tuple[Array, Array]:
         t = s[sel] - start
         is_arc = d == (0.0, 0.0)
         foot[sel, :2] = np.asarray(f0) + (0.0 if is_arc else 1.0) * t[:, None] * np.asarray(d)
-        ang[sel] = a0 + (t / PATH_DISTANCE if is_arc else 0.0)
+        ang[sel] = a0 + (t / distance if is_arc else 0.0)
         start += length
     return foot, np.column_stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)])
 
 
-def _trajectory(n_frames: int, n_laps: int, rng: np.random.Generator) -> tuple[Array, Array]:
-    """Camera centres ``(N, 3)`` and ``R_wc`` ``(N, 3, 3)`` of ``n_laps`` laps round the block."""
-    L = path_length()
+def _trajectory(n_frames: int, n_laps: float, rng: np.random.Generator,
+                half: tuple[float, float] = BLOCK_HALF, distance: float = PATH_DISTANCE,
+                lap_offset: float = LAP_OFFSET) -> tuple[Array, Array]:
+    """Camera centres ``(N, 3)`` and ``R_wc`` ``(N, 3, 3)`` of ``n_laps`` laps (a fraction
+    of a lap allowed) round the block of half sizes ``half``, ``distance`` from its walls,
+    swelling by up to ``lap_offset`` half way through the run."""
+    L = path_length(distance, half)
     station = n_laps * L * np.arange(n_frames) / n_frames
     u = station / (n_laps * L)  # run fraction
-    foot, n = _foot(station)
-    dist = PATH_DISTANCE + LAP_OFFSET * 0.5 * (1.0 - np.cos(2.0 * np.pi * u))
+    foot, n = _foot(station, half, distance)
+    dist = distance + lap_offset * 0.5 * (1.0 - np.cos(2.0 * np.pi * u))
     ph = rng.uniform(0.0, 2.0 * np.pi, size=5)
     w = station / L * 2.0 * np.pi  # one radian per lap / 2 pi
     p = foot + dist[:, None] * n
