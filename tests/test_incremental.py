@@ -422,13 +422,18 @@ def test_pose_batch_undone_in_part_restores_the_window_exactly():
     assert rel_err(f.x, np.linalg.solve(f.information_matrix().toarray(), f.information_vector())) < 1e-8
 
 
-def test_revisiting_stream_stays_exact_without_rebuild_cascade():
+def test_revisiting_stream_stays_exact_without_rebuild_cascade(monkeypatch):
     """A camera walking down a corridor and back (looking ahead both ways), its window
     rebuilt at the turn (as after a loop closure): the way back re-observes states
-    eliminated by that rebuild. They
-    are re-activated (batches undone in part), the window equals the full solve at every
-    frame, and there is no rebuild after the forced one; with the sparse-factorisation
-    rebuild the same stream rebuilds again and again (the cascade this avoids)."""
+    eliminated by that rebuild. Their ``Zm`` are fused one keyframe late (the system
+    holds the ``Zm`` of marginalised features back, ``mapping.DEFER_KEYFRAMES``, here 1):
+    they are re-activated (batches undone in part), the window equals the full solve at
+    every frame, and there is no rebuild after the forced one; with the
+    sparse-factorisation rebuild the same stream rebuilds again and again (the cascade
+    this avoids)."""
+    from eifslam.system import mapping
+
+    monkeypatch.setattr(mapping, "DEFER_KEYFRAMES", 1)
 
     def run(undoable: int):
         c = corridor_scene(20, np.random.default_rng(11), points_per_metre=12.0)
@@ -588,3 +593,27 @@ def test_add_split_sums_to_what_add_gives():
         R = store.matrix_csr()
         assert R.format == "csr" and R.shape == (dim, dim)
         assert np.abs((R - store.matrix()).toarray()).max() <= 1e-12 * abs(store.matrix()).max()
+
+
+def test_zm_of_marginalised_features_wait_and_are_all_fused_at_the_end():
+    """On the way back down the corridor the frames see features the recovery has
+    marginalised: their ``Zm`` wait (no re-activation, no rebuild for them), and
+    ``Slam.finish`` fuses every one of them, after which the estimate is the full solve
+    of the information holding them all."""
+    c = corridor_scene(20, np.random.default_rng(11), points_per_metre=12.0)
+    back = np.r_[np.arange(20), np.arange(18, 4, -1)]
+    sc = SyntheticScene(c.camera, c.positions[back], c.quats[back], c.points)
+    fe = SyntheticFrontEnd(sc, 11, map_fraction=1.0)
+    f = InformationFilter(sc.camera, recovery="incremental", window=1)
+    slam = Slam(sc.camera, fe.slam_config().replace(smoothing={"mode": "filter"}), frontend=fe, backend=f)
+    for k in range(len(sc.positions)):
+        slam.track(k)
+    stored = sum(len(b) for b in f.store.features)
+    assert f.incremental.stats.reactivations == 0 and f.incremental.stats.fallbacks == 0
+    n_wait = slam.mapper.deferred
+    assert n_wait > 50
+    slam.finish(retry=False)
+    assert sum(len(b) for b in f.store.features) >= stored + 0.9 * n_wait  # fused (a few may fail the gate)
+    assert slam.mapper.deferred == 0
+    f.complete_estimate()
+    assert rel_err(f.x, full_solve(f)) < 1e-8

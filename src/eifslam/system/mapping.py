@@ -239,6 +239,11 @@ class Mapper:
             zm = zm.subset(recent)
         return self.filter.fuse_features(zm)
 
+    @property
+    def deferred(self) -> int:
+        """How many ``Zm`` wait to be fused (:meth:`fuse_zm`)."""
+        return sum(len(b) for b in self._deferred)
+
     def flush_deferred(self) -> int:
         """Fuse the ``Zm`` that waited (:meth:`fuse_zm`); returns how many were fused."""
         if not self._deferred:
