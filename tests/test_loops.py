@@ -350,6 +350,7 @@ def test_a_few_long_tracks_do_not_join_two_places():
 class _Layout:
     def __init__(self, ids):
         self.ids = set(ids)
+        self.pose_ids = sorted(self.ids)
 
     def has_pose(self, k):
         return k in self.ids
@@ -419,6 +420,9 @@ def test_a_loop_must_agree_in_rotation_with_the_drift_the_relative_poses_allow()
     assert "held" in lc._disagreement(5, 197, p_k, q_m, X)  # noqa: SLF001
     assert "held" in lc._disagreement(5, 198, p_k, q_m, X)  # noqa: SLF001
     assert lc._disagreement(5, 199, p_k, q_m, X) == ""  # noqa: SLF001
+    # a copy of the place further away than half the path travelled since is another place
+    far = lc._disagreement(150, 199, p_k + [3.0, 0, 0], q_m, points(p_k + [3.0, 0, 0], q_m))  # noqa: SLF001
+    assert far.startswith("position disagrees with the path")
     # consecutive loop poses that disagree with each other start the count again
     other = quat_multiply(q_k, quat_exp(np.array([0.0, np.radians(-1.0), 0.0])))
     assert "(1 of" in lc._disagreement(5, 197, p_k, q_m, X)  # noqa: SLF001

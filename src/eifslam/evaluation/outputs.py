@@ -74,11 +74,12 @@ def loop_rows(slam: Slam, input_index: dict[int, int] | None = None) -> list[dic
 
 def refused_loop_rows(slam: Slam) -> list[dict[str, Any]]:
     """``report.json``'s ``loops_refused``: the loops that passed the geometric verification
-    and were refused because the estimate contradicts them, one dict each: ``frame``,
+    and were refused because the estimate or the path travelled contradicts them, one dict
+    each: ``frame``,
     ``old_frame``, ``reason`` (those held for confirmation by the next keyframes are not
     listed)."""
     return [dict(frame=int(k), old_frame=int(j), reason=why) for k, j, why in slam.loops.rejected
-            if "disagrees with the estimate" in why]
+            if "disagrees with the" in why]
 
 
 def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,

@@ -102,6 +102,11 @@ _FIELDS = [f for f in LoopClosure.__dataclass_fields__]
 CHI2_2DOF_99 = 9.21
 """99% quantile of chi-square with 2 degrees of freedom (a pixel residual)."""
 
+MAX_DRIFT_FRACTION = 0.5
+"""A loop may correct the current position by at most this fraction of the path travelled
+since the old frame: a monocular estimate that drifts half the distance it travels is lost,
+not drifting; a copy of a place further away than that is another place."""
+
 AGREEMENT_FALSE_ALARM = 1e-3
 """Probability that the agreement tests of a loop with the estimate refuse a true loop whose
 covariances are honest (:meth:`LoopCloser._disagreement`)."""
@@ -424,6 +429,11 @@ class LoopCloser:
         if not nis_rot <= bound:
             self._pending = None
             return f"rotation disagrees with the estimate (NIS {nis_rot:.3g}, 3 DOF)"
+        travelled = self._path_length(j, k)
+        if not float(np.linalg.norm(p_m - filt.pose(k)[0])) <= MAX_DRIFT_FRACTION * travelled:
+            self._pending = None
+            return (f"position disagrees with the path: a correction of {np.linalg.norm(p_m - filt.pose(k)[0]):.3g} "
+                    f"after {travelled:.3g} travelled")
         pend, count = self._pending, 1
         if pend is not None and pend.frame < k and abs(pend.old - j) <= self._place_span(pend.old):
             # the loop rotation of frame k carried to frame pend.frame by the two loop poses'
@@ -444,6 +454,13 @@ class LoopCloser:
         map tracks with frame *j* span it."""
         near = self._place_parts(j)[0]
         return max((abs(f - j) for f in near), default=0)
+
+    def _path_length(self, j: int, k: int) -> float:
+        """Length of the estimated path from frame *j* to frame *k* through the poses of
+        the filter between them (map units)."""
+        ids = [i for i in self.filter.layout.pose_ids if j <= i <= k]
+        P = np.array([self.filter.pose(i)[0] for i in sorted(ids)]).reshape(-1, 3)
+        return float(np.linalg.norm(np.diff(P, axis=0), axis=1).sum())
 
     def _rotation_drift(self, j: int, k: int) -> Array:
         """(3, 3) covariance, in frame *k*'s camera frame, of the rotation drift the relative
