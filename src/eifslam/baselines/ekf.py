@@ -247,6 +247,10 @@ class DenseEKF:
         """Nothing is marginalised: ``x``."""
         return self.x
 
+    def affordable_features(self, track_ids) -> bool:
+        """Every measurement costs the same: True."""
+        return True
+
     def recent_features(self, track_ids, steps: int | None = None) -> NDArray[np.bool_]:
         """Every feature is current: all True ``(N,)``."""
         return np.ones(len(np.asarray(track_ids).reshape(-1)), bool)

@@ -109,6 +109,11 @@ class Backend(Protocol):
         not tell)."""
         ...
 
+    def affordable_features(self, track_ids) -> bool:
+        """Whether new measurements of these map features cost the next recovery no solve
+        of the whole state (True where the back end does not tell)."""
+        ...
+
     def recent_estimate(self, steps: int) -> Array:
         """Bring the states of about the last ``steps`` keyframes to the current solution,
         at a cost that does not grow with the map; returns ``x``."""

@@ -438,6 +438,15 @@ class InformationFilter:
             return np.zeros(0, bool)
         return self.recovery.measured_within(self.layout.feature_columns(ids)[:, 0], steps)
 
+    def affordable_features(self, track_ids) -> bool:
+        """Whether new measurements of the map features ``track_ids`` cost the next
+        recovery no solve of the whole state (re-activating those marginalised is cheaper
+        than rebuilding the window; always with the full recovery)."""
+        ids = np.asarray(track_ids, np.int64).reshape(-1)
+        if not len(ids):
+            return True
+        return self.recovery.affordable(self.layout.feature_columns(ids)[:, 0])
+
     def complete_estimate(self) -> Array:
         """Back-substitute every marginalised state (``O(n)``), so that ``x`` equals the full
         solve of the information as of the last :meth:`recover_active`. Full recovery:

@@ -363,6 +363,21 @@ class IncrementalRecovery(ReactivatingWindow):
         self._marginalise(s)
         st.window_poses, st.window_features = len(self.pidx) // POSE_DIM, len(self.fidx) // FEATURE_DIM
 
+    def reactivation_affordable(self, starts: IntArray) -> bool:
+        """Whether new measurements of the states whose blocks start at ``starts`` would be
+        taken in by re-activation rather than a rebuild: those of them marginalised can be
+        planned (:meth:`plan_reactivation`) at a cost below a rebuild's (about one full
+        solve)."""
+        if not self._valid:
+            return True
+        starts = np.unique(np.asarray(starts, np.int64))
+        starts = starts[starts < len(self._pos)]
+        marg = starts[self._pos[starts] < 0]
+        if not len(marg):
+            return True
+        plan = self.plan_reactivation(marg)
+        return plan is not None and self.reactivation_flops(plan) <= self.rebuild_flops()
+
     def measured_within(self, starts: IntArray, steps: int) -> NDArray[np.bool_]:
         """Whether the states whose blocks start at entries ``starts`` (any shape) were
         measured within the last ``steps`` steps, as of the last step (states added since

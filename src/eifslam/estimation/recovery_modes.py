@@ -71,6 +71,11 @@ class RecoveryMode(Protocol):
         where the recovery does not tell)."""
         ...
 
+    def affordable(self, starts: IntArray) -> bool:
+        """Whether measuring the states whose blocks start at ``starts`` costs the next
+        recovery no solve of the whole state."""
+        ...
+
     def invalidate(self) -> None:
         """``I`` or ``x`` were replaced from outside: start again at the next recovery."""
         ...
@@ -125,6 +130,9 @@ class FullRecovery:
 
     def measured_within(self, starts: IntArray, steps: int | None) -> NDArray[np.bool_]:
         return np.ones(np.shape(starts), bool)
+
+    def affordable(self, starts: IntArray) -> bool:
+        return True
 
     def invalidate(self) -> None:
         pass
@@ -220,6 +228,9 @@ class WindowRecovery:
     def measured_within(self, starts: IntArray, steps: int | None) -> NDArray[np.bool_]:
         inc = self.incremental
         return inc.measured_within(starts, inc.feature_window if steps is None else steps)
+
+    def affordable(self, starts: IntArray) -> bool:
+        return self.incremental.reactivation_affordable(starts)
 
     def invalidate(self) -> None:
         self.incremental.on_invalidate()

@@ -196,12 +196,11 @@ class Mapper:
         projecting them with the pose guess ``(p, q)`` and matching descriptors nearby
         (:meth:`FrontEnd.reobserve`); returns how many were found.
 
-        The local map is the features of the recovery's active window
-        (:meth:`InformationFilter.recent_features`): their estimate is exact and a new
-        measurement of them costs the recovery what any other does. An older feature seen
-        again (a revisit) is the loop closer's to find: measuring it here would make the
-        recovery take back its marginalisation, up to a solve of the whole state, at every
-        frame of the revisit."""
+        The local map is the features measured in the last :data:`RECENT_STEPS` keyframes
+        (:meth:`InformationFilter.recent_features`), whose estimate the recent
+        back-substitution keeps exact; those of them the recovery has marginalised have
+        their ``Zm`` wait (:meth:`fuse_zm`). An older feature seen again (a revisit) is the
+        loop closer's to find."""
         r = self.config.reobserve_px
         filt = self.filter
         if not r or filt.layout.n_features == 0:
@@ -209,7 +208,7 @@ class Mapper:
         fids, X = filt.features()
         fids = np.asarray(fids, np.int64)
         seen, _ = self.frontend.map_observations(k)
-        cand = ~np.isin(fids, seen) & filt.recent_features(fids)
+        cand = ~np.isin(fids, seen) & filt.recent_features(fids, RECENT_STEPS)
         if not cand.any():
             return 0
         fids, X = fids[cand], X[cand]
@@ -222,19 +221,21 @@ class Mapper:
         return self.frontend.reobserve(k, fids[vis], h[vis], r)
 
     def fuse_zm(self, zm: FeatureObservations) -> FeatureObservations:
-        """Algorithm 1 step 5's ``Zm``: those of the local map (the features of the
-        recovery's active window, new ones included) are fused now; those of features the
-        recovery has marginalised, seen again, wait (:meth:`flush_deferred`).
+        """Algorithm 1 step 5's ``Zm``: they are fused now, except those of features the
+        recovery has marginalised when taking them back would cost a solve of the whole
+        state (:meth:`InformationFilter.affordable_features`): those wait
+        (:meth:`flush_deferred`).
 
         Fusing a measurement of a state the recovery has marginalised makes it take the
-        marginalisation back, which for a feature of a lap ago costs a solve of the whole
-        state; on a revisit every keyframe sees more of them. Waiting changes only when
+        marginalisation back: cheap for a feature marginalised a few keyframes ago (it is
+        re-activated), a rebuild of the window for one of a lap ago; on a revisit every
+        keyframe sees more of them. Waiting changes only when
         they enter: a measurement is linearised when it is fused, and the information
         form is a sum. They are fused together every :data:`DEFER_KEYFRAMES` keyframes
         (one solve for the lot), before a session is saved and at the end of the run.
         Returns the ``Zm`` fused now."""
         recent = self.filter.recent_features(zm.feature)
-        if not np.all(recent):
+        if not np.all(recent) and not self.filter.affordable_features(zm.feature[~recent]):
             self._deferred.append(zm.subset(~recent))
             zm = zm.subset(recent)
         return self.filter.fuse_features(zm)
