@@ -79,7 +79,7 @@ def refused_loop_rows(slam: Slam) -> list[dict[str, Any]]:
     ``old_frame``, ``reason`` (those held for confirmation by the next keyframes are not
     listed)."""
     return [dict(frame=int(k), old_frame=int(j), reason=why) for k, j, why in slam.loops.rejected
-            if "disagrees with the" in why]
+            if why.startswith(("rotation disagrees with the estimate", "position disagrees with the path"))]
 
 
 def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
