@@ -334,13 +334,15 @@ def test_the_run_holds_opencv_to_its_thread_setting_and_gives_it_back(scene_fram
             cfg(opencv_threads=bad)
 
 
-def test_matches_made_ahead_give_the_front_ends_own_results(scene_frames):
-    """ORB (exact brute-force search): features from ``detect_ahead`` carry the matches
-    with the previous detected frame, which ``add_features`` uses in place of its own first
-    search, with the same tracks; matches made against another frame than the front end's
-    previous one (a frame skipped) are ignored; SIFT's features carry none (FLANN)."""
+@pytest.mark.parametrize("detector", ["orb", "sift"])
+def test_matches_made_ahead_give_the_front_ends_own_results(scene_frames, detector):
+    """Features from ``detect_ahead`` carry the matches with the previous detected frame
+    (ORB: exact brute-force search; SIFT: FLANN on indices seeded from the descriptors,
+    built ahead too), which ``add_features`` uses in place of its own first search, with
+    the same tracks; matches made against another frame than the front end's previous one
+    (a frame skipped) are ignored."""
     cam, ims = scene_frames.camera, scene_frames.images[:6]
-    cfg = FrontEndConfig(detector="orb")
+    cfg = FrontEndConfig(detector=detector)
     a = FrontEnd(cam, cfg)
     res_a = [a.add_frame(im, k) for k, im in enumerate(ims) if k != 3]
     b = FrontEnd(cam, cfg)
@@ -363,5 +365,4 @@ def test_matches_made_ahead_give_the_front_ends_own_results(scene_frames):
         _, again = essential_ransac(prev.uv[f.ahead.idx_previous], f.uv[f.ahead.idx_new], cam.K,
                                     cfg.ransac_threshold_px, cfg.ransac_confidence, cfg.ransac_method)
         np.testing.assert_array_equal(again, inl)
-    sift = FrontEnd(cam, FrontEndConfig())
-    assert all(sift.detect_ahead(im).ahead is None for im in ims[:2])
+    assert all((f.index is not None) == cfg.flann_search for f in ahead)

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from ..geometry.camera import PinholeCamera
 from ..errors import ConfigError, ImageError
 from .config import FrontEndConfig
+from .matching import DescriptorIndex
 from .split import laplacian_sign
 
 Array = NDArray[np.float64]
@@ -81,6 +82,9 @@ class Features:
     ahead : AheadMatch or None
         Descriptor matches with the previous frame computed where the features were
         detected (:meth:`~eifslam.frontend.frontend.FrontEnd.detect_ahead`), or None.
+    index : DescriptorIndex or None
+        The search index of ``descriptors`` built where the features were detected
+        (:meth:`~eifslam.frontend.frontend.FrontEnd.detect_ahead`), or None.
     """
 
     uv: Array
@@ -92,6 +96,7 @@ class Features:
     colors: NDArray[np.uint8]
     detect_ms: float = 0.0
     ahead: AheadMatch | None = None
+    index: DescriptorIndex | None = None
 
     def __len__(self) -> int:
         return int(len(self.uv))

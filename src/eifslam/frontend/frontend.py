@@ -103,6 +103,7 @@ class FrontEnd:
         state["_local"] = None
         state["_matcher"] = None
         state["_index"] = {}  # FLANN indices do not pickle; rebuilt when next needed
+        state["_ahead_last"] = None
         return state
 
     def __setstate__(self, state: dict) -> None:
@@ -237,20 +238,25 @@ class FrontEnd:
         return detect_features(image, self.camera, self.config, self._thread_detector())
 
     def detect_ahead(self, image: np.ndarray) -> Features:
-        """:meth:`detect`, plus, where the search is exact (binary descriptors, brute force),
-        the matches with the features this method returned last and their epipolar RANSAC
-        (``Features.ahead``): the first search :meth:`add_features` makes, against the
-        previous frame with every row free, and its RANSAC (OpenCV's estimators draw from
-        their own fixed seed, not the calling thread's generator) depend on the two frames
-        alone, so a prefetch worker can make them. :meth:`add_features` uses them only when
-        its previous frame holds those descriptors, so the results are those of
-        :meth:`detect`. One thread calls it, in frame order."""
+        """:meth:`detect`, plus what depends on the new frame and the one before it alone, so
+        that a prefetch worker can make it: the new frame's search index (``Features.index``,
+        FLANN for float descriptors, seeded from the descriptors themselves), and the first
+        search :meth:`add_features` makes, against the previous frame with every row free,
+        with its epipolar RANSAC (``Features.ahead``; OpenCV's estimators draw from their own
+        fixed seed). :meth:`add_features` uses the matches only when its previous frame
+        holds those descriptors, so the results are those of :meth:`detect`. One thread
+        calls it, in frame order."""
         feats = self.detect(image)
+        index = None
+        if self.config.flann_search:
+            index = self._built_index(feats.descriptors)
+            feats = replace(feats, index=index)
         previous, self._ahead_last = self._ahead_last, feats
-        if previous is None or self.config.flann_search:
+        if previous is None:
             return feats
         t0 = time.perf_counter()
-        i_new, i_prev = self._matcher.match(feats.descriptors, previous.descriptors)
+        i_new, i_prev = self._matcher.match(feats.descriptors, previous.descriptors,
+                                            index1=index, index2=previous.index)
         inliers = self._epipolar_inliers(feats.uv[i_new], previous.uv[i_prev]) \
             if len(i_new) >= self.config.min_matches else None
         return replace(feats, ahead=AheadMatch(previous.descriptors, i_new, i_prev,
@@ -324,7 +330,8 @@ class FrontEnd:
             raise EstimatorError(f"frame {fid} was already added to the front end")
         if not isinstance(features, Features):
             raise EstimatorError(f"add_features takes Features, got {type(features).__name__}")
-        ahead, feats = features.ahead, replace(features, ahead=None)
+        ahead, ahead_index = features.ahead, features.index
+        feats = replace(features, ahead=None, index=None)
         if self.config.seed is not None:  # per frame: a resumed session draws what an uninterrupted run would
             cv2.setRNGSeed(int(self.config.seed) + fid)  # (OpenCV's generator is per thread: this one's)
         t1 = time.perf_counter()
@@ -332,8 +339,8 @@ class FrontEnd:
         previous = [p for p in reversed(self._order) if p in self._desc][: self.config.match_window]
         for p in reversed(previous):  # indices not kept (a loaded session): rebuilt as when added
             if p not in self._index:
-                self._index[p] = self._built_index(self._desc[p], p)
-        index = self._built_index(feats.descriptors, fid)
+                self._index[p] = self._built_index(self._desc[p])
+        index = ahead_index if ahead_index is not None else self._built_index(feats.descriptors)
         n_matches = 0
         if ahead is not None and not (previous and ahead.previous is self._desc[previous[0]]):
             ahead = None  # matched against another frame than the front end's previous one
@@ -362,12 +369,11 @@ class FrontEnd:
             ms["match_ahead"] = float(ahead.ms)  # the part of the matching made where detected
         return FrameResult(fid, ok, reason, len(feats), int(n_matches), int(new.sum()), ms)
 
-    def _built_index(self, descriptors: NDArray, fid: int) -> DescriptorIndex:
-        """Frame ``fid``'s :class:`DescriptorIndex`, built now from OpenCV's generator set to
-        ``seed + fid`` (FLANN's random trees): the same whenever built (e.g. after loading)."""
-        if self.config.seed is not None:
-            cv2.setRNGSeed(int(self.config.seed) + int(fid))
-        index = self._matcher.index(descriptors)
+    def _built_index(self, descriptors: NDArray) -> DescriptorIndex:
+        """A built :class:`DescriptorIndex` of ``descriptors``, its FLANN trees drawn from
+        OpenCV's generator set from the config's seed and the descriptors: the same
+        whenever and wherever built (in a prefetch worker, after loading a session)."""
+        index = self._matcher.index(descriptors, self.config.seed)
         index.build()
         return index
 
@@ -482,7 +488,7 @@ class FrontEnd:
         Dk = self._desc[fid]
         # Lowe's ratio test over the whole frame (the radius only checks where the nearest
         # descriptor is): nearest and second-nearest keypoint of each track's descriptor
-        index = self._index[fid] if fid in self._index else self._matcher.index(Dk)  # kept from matching
+        index = self._index[fid] if fid in self._index else self._built_index(Dk)  # kept from matching
         nn, dd = index.knn(D.astype(Dk.dtype), 2)
         two = nn[:, 1] >= 0
         best = np.where(two, nn[:, 0], 0)

@@ -6,6 +6,9 @@ RANSAC with the five-point solver and the known intrinsics, keeps the consistent
 
 from __future__ import annotations
 
+import threading
+import zlib
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -30,19 +33,28 @@ class DescriptorIndex:
     train set of the next frames' matches and in the mutual checks). Binary descriptors
     (ORB, AKAZE) are searched exactly by brute force (Hamming), which has nothing to build.
 
+    With a ``seed``, the forest's random trees are drawn from OpenCV's generator set to
+    ``seed`` plus a checksum of the descriptors: the same descriptors give the same index,
+    and so the same neighbours, in whichever thread and at whatever time it is built.
+    Queries may come from several threads (they take turns).
+
     Parameters
     ----------
     descriptors : (N, D) ndarray
         ``uint8`` binary or float descriptors.
     trees, checks : int
         FLANN randomised k-d trees (float descriptors) and leaves visited per query.
+    seed : int, optional
+        See above; None draws from the building thread's generator as it is.
     """
 
-    def __init__(self, descriptors: NDArray, trees: int = 4, checks: int = 48) -> None:
+    def __init__(self, descriptors: NDArray, trees: int = 4, checks: int = 48, seed: int | None = None) -> None:
         self.binary = descriptors.dtype == np.uint8
         self.descriptors = np.ascontiguousarray(descriptors if self.binary else np.asarray(descriptors, np.float32))
         self._trees, self._checks = int(trees), int(checks)
+        self._seed = None if seed is None else int(seed)
         self._flann = None
+        self._lock = threading.Lock()
 
     @property
     def prebuilt(self) -> bool:
@@ -54,9 +66,13 @@ class DescriptorIndex:
 
     def build(self) -> None:
         """Build the FLANN index now (else on the first query; nothing for binary descriptors).
-        Its random trees are drawn from OpenCV's generator (``cv2.setRNGSeed``)."""
-        if self._flann is None and self.prebuilt and len(self.descriptors):
-            self._flann = cv2.flann_Index(self.descriptors, {"algorithm": 1, "trees": self._trees})
+        Its random trees are drawn from OpenCV's generator (``cv2.setRNGSeed``; seeded
+        from the descriptors when the index has a ``seed``)."""
+        with self._lock:
+            if self._flann is None and self.prebuilt and len(self.descriptors):
+                if self._seed is not None:
+                    cv2.setRNGSeed((self._seed + zlib.crc32(self.descriptors)) % 2**31)
+                self._flann = cv2.flann_Index(self.descriptors, {"algorithm": 1, "trees": self._trees})
 
     def knn(self, q: NDArray, k: int) -> tuple[IntArray, Array]:
         """The ``k`` nearest indexed descriptors of each query row.
@@ -84,7 +100,8 @@ class DescriptorIndex:
             d = d.astype(np.float64)
         else:
             self.build()
-            i, d = self._flann.knnSearch(np.ascontiguousarray(q, np.float32), kk, params={"checks": self._checks})
+            with self._lock:
+                i, d = self._flann.knnSearch(np.ascontiguousarray(q, np.float32), kk, params={"checks": self._checks})
             d = np.sqrt(np.maximum(d.astype(np.float64), 0.0))  # FLANN returns squared L2
         i = np.asarray(i, np.int64).reshape(m, kk)
         d = np.asarray(d, np.float64).reshape(m, kk)
@@ -119,9 +136,10 @@ class DescriptorMatcher:
         self._flann = cv2.FlannBasedMatcher({"algorithm": 1, "trees": self.trees}, {"checks": self.checks})
         self._hamming = cv2.BFMatcher(cv2.NORM_HAMMING)
 
-    def index(self, descriptors: NDArray) -> DescriptorIndex:
-        """A :class:`DescriptorIndex` of ``descriptors (N, D)`` with this matcher's FLANN settings."""
-        return DescriptorIndex(descriptors, self.trees, self.checks)
+    def index(self, descriptors: NDArray, seed: int | None = None) -> DescriptorIndex:
+        """A :class:`DescriptorIndex` of ``descriptors (N, D)`` with this matcher's FLANN
+        settings (and ``seed``, see there)."""
+        return DescriptorIndex(descriptors, self.trees, self.checks, seed)
 
     def knn(self, q: NDArray, t: NDArray, k: int) -> list:
         """The ``k`` nearest descriptors of ``t (N2, D)`` for each of ``q (N1, D)``:
