@@ -263,9 +263,10 @@ def test_every_benchmark_runs_as_a_module():
 
 
 def test_loop_scoring_view_overlap_and_same_place():
-    """``view_overlap`` (the smaller share of one view the other camera sees) is 1 for one
-    camera, 0 for two looking apart and about a half for a sideways shift of half the
-    view's width at the depth; ``same_place`` asks each view's centre to be seen."""
+    """``view_overlap`` (the smaller share of one view, at its scene depth, that the other
+    camera sees at a like depth) is 1 for one camera, 0 for two looking apart or at scenes
+    of unlike depths, and about a half for a sideways shift of half the view's width at the
+    depth; ``same_place`` asks a fifth."""
     from benchmarks import loop_closure as lc
     from eifslam.geometry.camera import PinholeCamera
 
@@ -275,12 +276,13 @@ def test_loop_scoring_view_overlap_and_same_place():
     depth = 2.0
     width_at_depth = depth * cam.width / cam.fx  # 4 m
     assert lc.view_overlap(cam, here, here, depth) == 1.0 and lc.same_place(cam, here, here, depth)
+    assert lc.view_overlap(cam, here, here, depth, 5 * depth) == 0.0  # the same ray, another scene depth
     away = (np.zeros(3), np.diag([-1.0, 1.0, -1.0]))  # looking the other way
     assert lc.view_overlap(cam, here, away, depth) == 0.0 and not lc.same_place(cam, here, away, depth)
     half = (np.array([0.5 * width_at_depth, 0.0, 0.0]), eye)
-    assert 0.4 <= lc.view_overlap(cam, here, half, depth) <= 0.6
-    far = (np.array([0.8 * width_at_depth, 0.0, 0.0]), eye)  # centres outside each other's image
-    assert not lc.same_place(cam, here, far, depth) and 0.1 <= lc.view_overlap(cam, here, far, depth) <= 0.3
+    assert 0.4 <= lc.view_overlap(cam, here, half, depth) <= 0.6 and lc.same_place(cam, here, half, depth)
+    far = (np.array([0.9 * width_at_depth, 0.0, 0.0]), eye)  # a tenth of each view shared
+    assert not lc.same_place(cam, here, far, depth) and 0.0 < lc.view_overlap(cam, here, far, depth) < 0.2
 
 
 def test_posterior_samples_have_the_inverse_information_as_covariance():

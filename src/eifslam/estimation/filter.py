@@ -240,6 +240,14 @@ class InformationFilter:
                 self.info.add(idx, Lam, eta)
         self._factor = None
 
+    def subtract_information(self, idx, Lam: Array, eta: Array) -> None:
+        """Take back blocks that :meth:`add_information` added: ``I -= Lam``, ``i -= eta`` at
+        ``idx (N, k)``. ``I`` and ``i`` are sums over measurements, so this is exact when
+        ``I`` was not rebuilt since (``info.generation`` unchanged). The recovery window
+        (which eliminated with the old ``I``) is rebuilt at the next recovery."""
+        self.add_information(idx, -np.asarray(Lam, float), -np.asarray(eta, float), measurement=False)
+        self.recovery.invalidate()
+
     def linearise_features(self, obs: FeatureObservations, gate: bool = True):
         """Linearise ``Zm`` at the current estimate.
 

@@ -35,6 +35,9 @@ class InformationStore:
         self._vals: list[Array] = []
         self._pending = 0
         self._cached: sp.csc_matrix = sp.csc_matrix((0, 0))
+        #: Times ``I`` and ``i`` were replaced wholesale (:meth:`reset`, :meth:`set`): a sum of
+        #: fusions recorded at one generation can be subtracted only at that generation.
+        self.generation = 0
 
     def grow(self, dim: int) -> None:
         """Augment the state with zeros up to ``dim`` entries (Algorithm 1, step 4)."""
@@ -161,11 +164,13 @@ class InformationStore:
     def reset(self) -> None:
         """Zero information, same dimension (smoothing starts from here)."""
         self._vec[:] = 0.0
+        self.generation += 1
         self._rows, self._cols, self._vals, self._pending = [], [], [], 0
         self._cached = sp.csc_matrix((self.dim, self.dim))
 
     def set(self, I: sp.spmatrix, i: Array) -> None:
         """Replace ``I`` and ``i`` (scale recovery)."""
+        self.generation += 1
         self._rows, self._cols, self._vals, self._pending = [], [], [], 0
         self._cached = sp.csc_matrix(I)
         self._vec[: self.dim] = i

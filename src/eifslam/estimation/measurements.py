@@ -195,6 +195,19 @@ class MeasurementStore:
         """Every stored ``Zm`` as one batch."""
         return FeatureObservations.concatenate(self.features)
 
+    def remove_features(self, drop) -> int:
+        """Take stored ``Zm`` out (a loop taken back): ``drop`` maps a batch to a boolean
+        mask ``(N,)`` of the measurements to remove. Batches left empty are removed; the
+        order of the rest is kept. Returns how many were removed."""
+        kept, n = [], 0
+        for b in self.features:
+            m = np.asarray(drop(b), bool).reshape(-1)
+            n += int(m.sum())
+            if not m.all():
+                kept.append(b if not m.any() else b.subset(~m))
+        self.features = kept
+        return n
+
 
 @dataclass
 class PriorStore:

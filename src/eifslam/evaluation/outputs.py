@@ -82,6 +82,14 @@ def refused_loop_rows(slam: Slam) -> list[dict[str, Any]]:
             if why.startswith(("rotation disagrees with the estimate", "position disagrees with the path"))]
 
 
+def removed_loop_rows(slam: Slam) -> list[dict[str, Any]]:
+    """``report.json``'s ``loops_removed``: the loops fused and then taken back (the estimate
+    with the keyframes after them contradicted them, or the caller removed them), one dict
+    each: the loop's fields (:class:`~eifslam.system.loops.LoopClosure`), ``removed_at``
+    (the frame at which it was taken back) and ``reason``. They are not in ``loop_closures``."""
+    return [dict(c.to_dict(), removed_at=int(at), reason=why) for c, at, why in slam.loops.removed]
+
+
 def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
             extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """The figures of ``report.json``."""
@@ -101,7 +109,7 @@ def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
         stage_ms_median={s: _median([r.timings_ms[s] for r in res if s in r.timings_ms]) for s in stages},
         total_seconds=round(total_s, 3), fps=round(n / total_s, 3) if total_s > 0 else None,
         eifslam_version=__version__, config=slam.config.to_dict(), loop_closures=loop_rows(slam),
-        loops_refused=refused_loop_rows(slam),
+        loops_refused=refused_loop_rows(slam), loops_removed=removed_loop_rows(slam),
     )
     if slam.smoothing is not None:
         sm = slam.smoothing

@@ -58,7 +58,7 @@ from .config import SlamConfig
 
 Array = NDArray[np.float64]
 
-__all__ = ["LoopCloser", "LoopClosure", "most_observing"]
+__all__ = ["FusedLoop", "LoopCloser", "LoopClosure", "most_observing"]
 
 
 @dataclass
@@ -126,6 +126,45 @@ class PendingLoop:
     count: int
 
 
+CHECK_KEYFRAMES = 3
+"""Keyframes after a loop's own whose estimate must still agree with it (:meth:`LoopCloser.check`);
+the loop's own keyframe tests it right after its fusion too."""
+
+
+@dataclass
+class FusedLoop:
+    """What a fused loop added to the filter, so that it can be taken back.
+
+    Attributes
+    ----------
+    closure : LoopClosure
+    obs : FeatureObservations
+        The loop's ``Zm`` (old map features in frame ``closure.frame``), as stored.
+    idx, Lam, eta : (N, 10) int, (N, 10, 10), (N, 10) float or None
+        What the fusion added to ``I`` and ``i`` (None when the fusion was followed by a
+        relinearisation of every measurement: ``I`` was rebuilt).
+    generation : int
+        ``info.generation`` right after the fusion: ``idx, Lam, eta`` are still in ``I``
+        while it is unchanged.
+    x_before : (n,)
+        The complete estimate before the fusion (the state then had ``n`` entries).
+    joined : (M,) int
+        Old features whose tracks the loop merged with the loop frame's keypoints.
+    checks : int
+        Agreement checks still due (:data:`CHECK_KEYFRAMES` at first, plus the loop's own).
+    """
+
+    closure: LoopClosure
+    obs: FeatureObservations
+    idx: NDArray[np.int64] | None
+    Lam: Array | None
+    eta: Array | None
+    generation: int
+    x_before: Array
+    joined: NDArray[np.int64]
+    checks: int
+
+
 _PLACE_REFUSED = ("too few old map features", "too few matches to the map", "PnP failed", "too few PnP inliers")
 """Verification failures that refuse the candidate's place as a whole (its map features)."""
 
@@ -187,10 +226,15 @@ class LoopCloser:
         self._streak: list[tuple[int, int, int]] = []  # (lo, hi, count) places of the last query
         self._loop_tracks: dict[int, NDArray[np.int64]] = {}  # loop frame -> old features fused there
         self._pending: PendingLoop | None = None  # a loop awaiting confirmation
+        self._fused: list[FusedLoop] = []  # the kept loops that can be taken back, in closures' order
+        self.removed: list[tuple[LoopClosure, int, str]] = []  # (loop, frame at which it was taken back, why)
 
     # -- per frame ------------------------------------------------------------------
     def process(self, k: int) -> LoopClosure | None:
-        """Seek, verify and fuse a loop for frame *k* (a pose of the filter, just fused)."""
+        """Check the loops fused in the last keyframes against the estimate (:meth:`check`),
+        then seek, verify and fuse a loop for frame *k* (a pose of the filter, just fused)."""
+        if self._fused and self.filter.layout.has_pose(k):
+            self.check(k)
         if not self.enabled or not self.filter.layout.has_pose(k):
             return None
         desc = self.frontend.descriptors(k)
@@ -362,6 +406,37 @@ class LoopCloser:
         dq = float(np.degrees(np.linalg.norm(quat_log(quat_multiply(quat_conjugate(q_f), chk.q)))))
         obs = FeatureObservations.make(np.full(len(chk.keypoints), k), fids[chk.features], fk.uv[chk.keypoints],
                                        self.config.zm_sigma_px)
+        lc = LoopClosure(k, j, score, chk.matches, chk.inliers, chk.required, chk.five_point_inliers,
+                         chk.five_point_required, 0, dp, dq)
+        # track merging: keypoints whose tracks are not map features yet continue the old
+        # features' tracks, so the next frames observe the old features as usual (Zm, gated)
+        free = ~filt.layout.has_features(fk.track_ids[chk.keypoints])
+        fused = self.fuse(lc, obs, chk.p, chk.q, joined=fids[chk.features][free])
+        fe.join_tracks(k, chk.keypoints[free], fids[chk.features][free])
+        if len(fused) and not self.check(k, only=lc):  # the estimate with the loop contradicts it at once
+            return None
+        return lc
+
+    def fuse(self, lc: LoopClosure, obs: FeatureObservations, p_m: Array, q_m: Array,
+             joined: NDArray[np.int64] | None = None) -> FeatureObservations:
+        """Fuse a verified loop: its ``Zm`` ``obs`` (old map features observed in frame
+        ``lc.frame``), not gated, with the loop frame's pose ``(p_m, q_m)`` from the old map
+        (for the loop correction). Records the loop in :attr:`closures` (``lc.fused`` set)
+        with what it added, so that :meth:`remove` can take it back; ``joined``: the old
+        features whose tracks the caller merges with the frame's (their later ``Zm`` come
+        through the loop and leave with it).
+
+        Returns
+        -------
+        FeatureObservations
+            The ``Zm`` fused (those in front of the camera).
+        """
+        filt, cfg = self.filter, self.config
+        k, j = lc.frame, lc.matched_frame
+        x_before = filt.complete_estimate().copy()
+        ok, idx, J, W, innov, _ = filt.linearise_features(obs, gate=False)
+        obs = obs.subset(ok)
+        record: tuple | None = None
         if cfg.loops.smooth_passes and not self._predicted(obs):
             # the loop's correction can be far from the linearisation point of the poses it
             # moves (on the loop world 3.8 deg and 1 m after a lap): first move the estimate as a
@@ -371,26 +446,135 @@ class LoopCloser:
             from ..estimation.loop_correction import correct_loop, relinearise_all
 
             info = filt.information_form()
-            correct_loop(info, j, k, chk.p, chk.q)
+            correct_loop(info, j, k, p_m, q_m)
             fused = info.fuse_features(obs, gate=False)
             relinearise_all(info, cfg.loops.smooth_passes)
             filt.set_from_information_form(info)
             # x is now the full solution; the incremental window is rebuilt at the next step
         else:
+            from ..estimation.factors import Linearised
+
+            # what the fusion adds (the filter linearises the same Zm at the same x)
+            Lam, eta = Linearised(idx[ok], J[ok], W[ok], innov[ok]).information(filt.x)
+            record = (idx[ok], Lam, eta)
             fused = filt.fuse_features(obs, gate=False)
             filt.recover_active()
+        lc.fused = len(fused)
+        self.closures.append(lc)
+        if not len(fused):
+            return fused
         # the loop's Zm are observations of frame k (covisibility): the frames after it do not
         # find the same place again (see place())
         self.mapper.record_loop(k, fused.feature, fused.uv)
         self._loop_tracks[int(k)] = np.union1d(self._loop_tracks.get(int(k), np.zeros(0, np.int64)),
                                                np.asarray(fused.feature, np.int64))
-        # track merging: keypoints whose tracks are not map features yet continue the old
-        # features' tracks, so the next frames observe the old features as usual (Zm, gated)
-        free = ~filt.layout.has_features(fk.track_ids[chk.keypoints])
-        fe.join_tracks(k, chk.keypoints[free], fids[chk.features][free])
-        lc = LoopClosure(k, j, score, chk.matches, chk.inliers, chk.required, chk.five_point_inliers,
-                         chk.five_point_required, len(fused), dp, dq)
-        self.closures.append(lc)
+        idx_, Lam_, eta_ = record if record is not None else (None, None, None)
+        self._fused.append(FusedLoop(lc, fused, idx_, Lam_, eta_, filt.info.generation, x_before,
+                                     np.zeros(0, np.int64) if joined is None else np.asarray(joined, np.int64),
+                                     CHECK_KEYFRAMES + 1))
+        return fused
+
+    # -- taking a loop back ---------------------------------------------------------
+    def check(self, k: int, only: LoopClosure | None = None) -> bool:
+        """Test the loops fused in the last :data:`CHECK_KEYFRAMES` keyframes (or ``only``)
+        against the current estimate, which holds the measurements of the frames after each
+        of them; take back those it contradicts (:meth:`remove`). Returns whether ``only``
+        (or every loop tested) was kept.
+
+        The test: the loop's ``Zm`` residuals at the estimate, normalised by their pixel
+        noise, summed, ``D = sum_i |z_i - h_i(x)|^2 / sigma_i^2``, against the
+        ``1 - AGREEMENT_FALSE_ALARM`` quantile of chi-square with ``2 n`` degrees of freedom
+        (``n`` the loop's ``Zm``). Residuals of measurements the estimate has fused have
+        covariance ``R - H P H^T <= R``, so ``D`` is at most chi-square with ``2 n`` degrees
+        of freedom when the loop is true and the noise honest: a true loop is taken back
+        with probability at most :data:`AGREEMENT_FALSE_ALARM` per test (the consistency test
+        of loop clusters of Latif, Cadena and Neira's RRR). A loop the relative poses and
+        map observations of the frames after it contradict is pulled away from its own
+        measurements by them, and ``D`` grows with each such keyframe. A ``Zm`` behind its
+        camera counts as contradicting.
+        """
+        from ..estimation.agreement import chi2_quantile
+
+        kept = True
+        for fl in list(self._fused):
+            if fl.checks <= 0 or (only is not None and fl.closure is not only) or fl.closure.frame > k:
+                continue
+            obs = fl.obs
+            chi2 = self.filter.linearise_features(obs, gate=False)[5] if len(obs) else np.zeros(0)
+            D = float(np.sum(chi2))
+            bound = chi2_quantile(2 * len(obs), AGREEMENT_FALSE_ALARM) if len(obs) else np.inf
+            fl.checks -= 1
+            if not D <= bound:
+                self.remove(fl.closure, frame=k, why=f"the estimate after it contradicts it (residual {D:.3g} "
+                                                   f"> {bound:.3g}, {2 * len(obs)} DOF)")
+                kept = False
+        return kept
+
+    def remove(self, loop: int | LoopClosure, frame: int | None = None, why: str = "taken back by the caller"
+               ) -> LoopClosure:
+        """Take a fused loop back (``loop``: its index in :attr:`closures`, or the loop).
+
+        Its ``Zm`` leave the measurement store (smoothing does not bring them back), with the
+        ``Zm`` that frames after it fused on the old map features whose tracks the loop
+        merged (their association came through the loop), and the loop frame stops observing the old
+        place (covisibility). The information:
+
+        * when nothing but the loop was taken out and ``I`` was not rebuilt since its
+          fusion, exactly what the fusion added is subtracted (``I`` and ``i`` are sums),
+          and the whole state is solved again: ``I``, ``i`` and ``x`` are those of the
+          filter without the loop;
+        * otherwise (the loop moved the linearisation point of every state and
+          relinearised every measurement there, or later ``Zm`` go with it), the states
+          that were there before the loop take back their estimate of that time, the states
+          added since follow the loop frame back (the rigid motion that takes its current
+          pose to its pose before the loop), and every remaining measurement is
+          relinearised there (Gauss-Newton passes of
+          :func:`~eifslam.estimation.loop_correction.relinearise_all`).
+
+        Later ``Zm`` of the old features through the merged tracks fail the ``Zm`` gate
+        once the estimate is back (the old features project elsewhere).
+
+        Raises
+        ------
+        KeyError
+            When ``loop`` names no loop this loop closer can take back.
+        """
+        from ..estimation.loop_correction import relinearise_all
+
+        lc = self.closures[loop] if isinstance(loop, (int, np.integer)) else loop
+        fl = next((f for f in self._fused if f.closure is lc), None)
+        if fl is None:
+            raise KeyError(f"no loop of frame {getattr(lc, 'frame', lc)} that can be taken back")
+        filt = self.filter
+        k, j = lc.frame, lc.matched_frame
+        feats = np.asarray(fl.obs.feature, np.int64)
+        own = {(int(f), float(u), float(v)) for f, (u, v) in zip(feats, fl.obs.uv)}
+
+        def is_loop(b: FeatureObservations) -> NDArray[np.bool_]:
+            return np.array([p == k and (int(f), float(u), float(v)) in own
+                             for p, f, (u, v) in zip(b.pose, b.feature, b.uv)], bool).reshape(-1)
+
+        def later(b: FeatureObservations) -> NDArray[np.bool_]:
+            return (b.pose > k) & np.isin(b.feature, fl.joined)
+
+        n_later = sum(int(later(b).sum()) for b in filt.store.features)
+        filt.store.remove_features(lambda b: is_loop(b) | later(b))
+        exact = fl.Lam is not None and n_later == 0 and filt.info.generation == fl.generation and filt.online is None
+        if exact:
+            filt.subtract_information(fl.idx, fl.Lam, fl.eta)
+            filt.recover_rebuilt()
+        else:
+            filt.set_estimate(self._estimate_before(fl))
+            relinearise_all(filt, max(int(self.config.loops.smooth_passes), 1))
+        self.mapper.forget_loop(k, feats)
+        left = np.setdiff1d(self._loop_tracks.get(int(k), np.zeros(0, np.int64)), feats)
+        if len(left):
+            self._loop_tracks[int(k)] = left
+        else:
+            self._loop_tracks.pop(int(k), None)
+        self._fused.remove(fl)
+        self.closures = [c for c in self.closures if c is not lc]
+        self.removed.append((lc, int(k if frame is None else frame), why))
         return lc
 
     def _disagreement(self, j: int, k: int, p_m: Array, q_m: Array, X: Array) -> str:
@@ -448,6 +632,33 @@ class LoopCloser:
             return ""
         self._pending = PendingLoop(k, j, p_m, q_m, C_m, count)
         return f"held until consecutive keyframes confirm it ({count} of {self.config.loops.consistency})"
+
+    def _estimate_before(self, fl: FusedLoop) -> Array:
+        """The estimate to relinearise at when loop ``fl`` is taken back: the states of the
+        time of its fusion at their estimate then, the later ones moved rigidly with the loop
+        frame from its current pose to its pose then."""
+        from ..estimation.state import read_pose
+
+        filt = self.filter
+        x = filt.complete_estimate().copy()
+        n0 = len(fl.x_before)
+        k = fl.closure.frame
+        p_b, q_b = read_pose(filt.layout, fl.x_before, k)
+        p_n, q_n = filt.pose(k)
+        R = quat_to_rotmat(q_b) @ quat_to_rotmat(q_n).T  # current world to the world before
+        dq = quat_multiply(q_b, quat_conjugate(q_n))
+        new_poses = [f for f in filt.layout.pose_ids if filt.layout.pose_columns([f])[0, 0] >= n0]
+        if new_poses:
+            c = filt.layout.pose_columns(new_poses)
+            x[c[:, :3]] = (x[c[:, :3]] - p_n) @ R.T + p_b
+            x[c[:, 3:]] = quat_multiply(dq[None], x[c[:, 3:]])
+        fids = np.asarray(filt.layout.feature_ids, np.int64)
+        if len(fids):
+            c = filt.layout.feature_columns(fids)
+            c = c[c[:, 0] >= n0]
+            x[c] = (x[c] - p_n) @ R.T + p_b
+        x[:n0] = fl.x_before
+        return x
 
     def _place_span(self, j: int) -> int:
         """How far apart two old frames may be and still be one place: the frames that share

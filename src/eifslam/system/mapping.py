@@ -176,6 +176,17 @@ class Mapper:
                 hist.append((int(k), u.copy()))
                 self._frames_per_track().setdefault(t, set()).add(int(k))
 
+    def forget_loop(self, k: int, track_ids) -> None:
+        """Take back :meth:`record_loop`: frame *k* no longer observes the old map features
+        ``track_ids (M,)`` (a loop taken back)."""
+        frames = self._frames_per_track()
+        for t in np.asarray(track_ids, np.int64).reshape(-1).tolist():
+            hist = self._track_obs.get(t)
+            if hist is not None:
+                self._track_obs[t] = [(j, u) for j, u in hist if j != int(k)]
+            if t in frames:
+                frames[t].discard(int(k))
+
     # -- per frame ----------------------------------------------------------------
     def record_observations(self, k: int) -> tuple[NDArray[np.int64], Array]:
         """Store frame *k*'s map observations per track (and first colours); return the

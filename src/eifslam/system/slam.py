@@ -129,6 +129,19 @@ class Slam:
         """The loops found and fused so far (:mod:`~.loops`), in the order found."""
         return list(self.loops.closures)
 
+    def remove_loop(self, loop: int | LoopClosure) -> LoopClosure:
+        """Take a fused loop back (its index in :attr:`loop_closures`, or the loop): what its
+        fusion added to the information leaves it, its ``Zm`` leave the measurement store,
+        and the estimate is recovered without it (:meth:`~.loops.LoopCloser.remove`). The
+        loop is then listed in ``loops.removed``, not in :attr:`loop_closures`.
+
+        Raises
+        ------
+        KeyError
+            When the loop is not one this run fused (or its record did not survive a session).
+        """
+        return self.loops.remove(loop)
+
     def feature_covariance(self, track_id: int) -> Array:
         """3x3 covariance of a map feature."""
         return self.filter.feature_covariance(track_id)
