@@ -140,9 +140,23 @@ class FrontEnd:
 
     def descriptors(self, frame_id: int) -> NDArray | None:
         """Descriptors ``(N, D)`` of a stored frame's keypoints (rows as in :meth:`frame`),
-        or None when they were dropped (:meth:`forget`)."""
+        as the detector gives them (``float32`` for SIFT), or None when they were dropped
+        (:meth:`forget`)."""
         self._get(frame_id)
-        return self._desc.get(int(frame_id))
+        d = self._desc.get(int(frame_id))
+        return None if d is None else self._searchable(d)
+
+    def _searchable(self, d: NDArray) -> NDArray:
+        """Stored descriptors ``d`` as the detector gives them: SIFT's bytes as ``float32``."""
+        return d.astype(np.float32) if self.config.flann_search and d.dtype == np.uint8 else d
+
+    def _compact(self, d: NDArray) -> NDArray:
+        """Descriptors as stored: OpenCV's SIFT descriptors are floats holding the integers
+        0..255, kept as bytes (a quarter of the memory, exactly); others as they are."""
+        if d.dtype != np.float32 or not self.config.flann_search:
+            return d
+        b = d.astype(np.uint8)
+        return b if np.array_equal(b, d) else d
 
     @property
     def matcher(self) -> DescriptorMatcher:
@@ -339,10 +353,10 @@ class FrontEnd:
         previous = [p for p in reversed(self._order) if p in self._desc][: self.config.match_window]
         for p in reversed(previous):  # indices not kept (a loaded session): rebuilt as when added
             if p not in self._index:
-                self._index[p] = self._built_index(self._desc[p])
+                self._index[p] = self._built_index(self._searchable(self._desc[p]))
         index = ahead_index if ahead_index is not None else self._built_index(feats.descriptors)
         n_matches = 0
-        if ahead is not None and not (previous and ahead.previous is self._desc[previous[0]]):
+        if ahead is not None and not (previous and ahead.previous is self._index[previous[0]].descriptors):
             ahead = None  # matched against another frame than the front end's previous one
         for p in previous:
             n_matches += self._extend_tracks(feats, ids, p, index, ahead if p == previous[0] else None)
@@ -351,8 +365,9 @@ class FrontEnd:
         ids[new] = self._tracks.allocate(in_map)
         self._tracks.observe(ids)
         self._note_last_seen(fid, ids)
-        self._frames[fid] = StoredFrame(feats, ids)
-        self._desc[fid] = feats.descriptors
+        stored = replace(feats, descriptors=self._compact(feats.descriptors))
+        self._frames[fid] = StoredFrame(stored, ids)
+        self._desc[fid] = stored.descriptors
         self._order.append(fid)
         self._index[fid] = index
         for p in [p for p in self._index if p not in previous[: self.config.match_window - 1] and p != fid]:
@@ -421,7 +436,7 @@ class FrontEnd:
         free_old = ~np.isin(pid, ids[ids >= 0])
         if free_new.sum() < 5 or free_old.sum() < 5:
             return 0
-        ia, ib = self._epipolar_matches(feats.uv, feats.descriptors, prev.feats.uv, self._desc[p],
+        ia, ib = self._epipolar_matches(feats.uv, feats.descriptors, prev.feats.uv, self._index[p].descriptors,
                                         free_new, free_old, index, self._index[p], ahead)
         ids[ia] = pid[ib]
         return int(len(ia))
@@ -484,12 +499,15 @@ class FrontEnd:
         track_ids, uv_predicted, lf, lk = track_ids[have], uv_predicted[have], lf[have], lk[have]
         if len(track_ids) == 0:
             return 0
-        D = np.stack([self._desc[int(f)][int(k)] for f, k in zip(lf, lk)])
-        Dk = self._desc[fid]
+        Dk = self._searchable(self._desc[fid])
+        D = np.empty((len(lf), Dk.shape[1]), Dk.dtype)  # each track's descriptor where last seen
+        for f in np.unique(lf).tolist():
+            rows = lf == f
+            D[rows] = self._desc[f][lk[rows]]
         # Lowe's ratio test over the whole frame (the radius only checks where the nearest
         # descriptor is): nearest and second-nearest keypoint of each track's descriptor
-        index = self._index[fid] if fid in self._index else self._built_index(Dk)  # kept from matching
-        nn, dd = index.knn(D.astype(Dk.dtype), 2)
+        index = self._index[fid] if fid in self._index else self._built_index(Dk)
+        nn, dd = index.knn(D, 2)
         two = nn[:, 1] >= 0
         best = np.where(two, nn[:, 0], 0)
         d1 = np.where(two, dd[:, 0], np.inf)
@@ -537,8 +555,8 @@ class FrontEnd:
                 out.append((c, 0))
                 continue
             cf = self._get(c)
-            ia, ib = self._epipolar_matches(fr.feats.uv, self._desc[int(frame_id)],
-                                            cf.feats.uv, self._desc[c])
+            ia, ib = self._epipolar_matches(fr.feats.uv, self.descriptors(frame_id),
+                                            cf.feats.uv, self.descriptors(c))
             out.append((c, int(len(ia))))
             if len(ia):
                 pairs.append(np.stack([fr.raw_ids[ia], cf.raw_ids[ib]], 1))
@@ -583,11 +601,12 @@ class FrontEnd:
             return np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros((0,) + tail, dtype)
 
         desc = [f.feats.descriptors for f in frames if f.feats.descriptors.size]
-        width, dtype = (desc[0].shape[1], desc[0].dtype) if desc else (0, np.uint8)
+        width, dtype = (desc[0].shape[1], np.result_type(*[d.dtype for d in desc])) if desc else (0, np.uint8)
         D = cat(lambda f: f.feats.descriptors, (width,), dtype)
         # OpenCV's SIFT descriptors are floats holding integers 0..255: kept as bytes (4x
         # smaller), exactly
-        as_bytes = D.dtype == np.float32 and bool(np.all((D >= 0) & (D <= 255) & (D == np.round(D))))
+        as_bytes = self.config.flann_search and (D.dtype == np.uint8 or bool(
+            np.all((D >= 0) & (D <= 255) & (D == np.round(D)))))
         return {
             "descriptors_float32": as_bytes,
             "order": np.array(self._order, np.int64),
@@ -648,7 +667,7 @@ class FrontEnd:
             raise SessionError("arrays 'last_frame' and 'last_kp' name a keypoint that is not stored")
         ends = np.cumsum(nk)
         for fid, a, b, m in zip(order.tolist(), (ends - nk).tolist(), ends.tolist(), matchable.tolist()):
-            feats = Features(uv[a:b].copy(), uv_raw[a:b].copy(), desc[a:b].copy(), scale[a:b].copy(),
+            feats = Features(uv[a:b].copy(), uv_raw[a:b].copy(), self._compact(desc[a:b]).copy(), scale[a:b].copy(),
                              resp[a:b].copy(), sign[a:b].copy(), colors[a:b].copy())
             self._frames[fid] = StoredFrame(feats, raw[a:b].copy())
             if m:
