@@ -98,7 +98,7 @@ def test_full_report(tmp_path):
     assert '<th>timing ms: total</th><td data-value="15.5">15.5</td>' in text
     assert "fake &lt;seq&gt;" in text
     # no ground truth: no evaluation
-    assert "ate-rmse" not in text and "ground_truth.png" not in text
+    assert 'id="ate-rmse"' not in text and "ground_truth.png" not in text
     assert "Figure left out" not in text
     assert "2 initialising, 27 tracking, 1 lost" in text
 
