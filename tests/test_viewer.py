@@ -81,3 +81,42 @@ def test_without_rerun_the_command_ends_in_one_line(data, tmp_path, monkeypatch,
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["eifslam: error: the viewer needs rerun-sdk: pip install 'eifslam[viewer]'"]
     assert not out.exists()  # checked before any work
+
+
+def test_a_loop_closure_is_streamed_as_it_is_found(data, tmp_path):
+    from eifslam.io import open_source
+    from eifslam.system.config import SlamConfig
+    from eifslam.system.loops import LoopClosure
+    from eifslam.system.runner import run_sequence
+    from eifslam.system.slam import Slam
+    from eifslam.viz.viewer import RerunViewer
+
+    seq = open_source(data)
+    config = SlamConfig().replace(smoothing={"mode": "filter"})
+    slam, rrd = Slam(seq.camera, config), tmp_path / "loop.rrd"
+    viewer = RerunViewer(seq.camera, save=rrd, ground_truth=seq.ground_truth())
+    run_sequence(viewer.watch(seq), config, quiet=True, on_frame=viewer.on_frame(slam), slam=slam)
+    last = slam.results[-1]
+    # a loop as the loop closer records it, from the last frame to the first keyframe after frame 0
+    old = slam.filter.layout.pose_ids[1]
+    slam.loops.closures.append(LoopClosure(
+        frame=last.frame_id, matched_frame=old, score=0.5, matches=80, inliers=60, required=30,
+        five_point_inliers=50, five_point_required=20, fused=60, correction_m=0.01, correction_deg=0.2))
+    viewer.log_frame(slam, last)
+    viewer.finish(slam)
+    entities = _read(rrd)
+    texts = [r["TextLog:text"][0] for _, r in entities["/loops"]]
+    assert texts == [f"frame {last.frame_id} closed a loop with frame {old} (60 inliers, correction 0.01)"]
+    segment = np.array(_latest(entities["/world/loops"], "LineStrips3D:strips")[0])
+    ends = np.array([slam.T_wc(last.frame_id)[:3, 3], slam.T_wc(old)[:3, 3]])
+    np.testing.assert_allclose(segment, ends, atol=1e-5)
+
+
+def test_the_viewer_without_a_display_ends_in_one_line(data, tmp_path, monkeypatch, capsys):
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the display check is Linux's")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert cli_main(["run", str(data), "--out", str(tmp_path / "out"), "--viewer", "-q"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "needs a display" in err[0] and "--rerun-save" in err[0]

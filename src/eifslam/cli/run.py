@@ -212,7 +212,7 @@ def main(args: argparse.Namespace) -> int:
     if viewing:
         from ..viz.viewer import import_rerun
 
-        import_rerun()  # one line saying how to install it
+        import_rerun(spawn=args.viewer)  # one line saying how to install it, or that there is no display
     guard_outputs(args.out, args.force)
     resume = None
     if args.resume is not None:

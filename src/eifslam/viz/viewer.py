@@ -34,6 +34,7 @@ until its frame is shown; no image is decoded twice.
 
 from __future__ import annotations
 
+import os
 import sys
 from collections import deque
 from pathlib import Path
@@ -68,13 +69,18 @@ JPEG_QUALITY = 85
 MISSING = "the viewer needs rerun-sdk: pip install 'eifslam[viewer]'"
 
 
-def import_rerun():
+def import_rerun(spawn: bool = False):
     """The ``rerun`` module, or :class:`~eifslam.errors.EifslamError` with one line saying
-    how to install it."""
+    how to install it; with ``spawn``, also when the viewer cannot open a window (Linux
+    without ``DISPLAY`` or ``WAYLAND_DISPLAY``)."""
     try:
         import rerun
     except ImportError:
         raise EifslamError(MISSING) from None
+    if spawn and sys.platform.startswith("linux") and not (os.environ.get("DISPLAY")
+                                                           or os.environ.get("WAYLAND_DISPLAY")):
+        raise EifslamError("the viewer needs a display (DISPLAY and WAYLAND_DISPLAY are not set); "
+                           "record the run with --rerun-save FILE.rrd and open it where there is one")
     return rerun
 
 
@@ -210,7 +216,7 @@ class RerunViewer:
             raise EifslamError("the viewer needs somewhere to stream: spawn the viewer or give a file to save")
         if int(every) < 1:
             raise EifslamError(f"the viewer's update interval must be >= 1 keyframe, got {every}")
-        rr = self._rr = import_rerun()
+        rr = self._rr = import_rerun(spawn)
         import rerun.blueprint as rrb
 
         self.camera, self.every, self.color_order = camera, int(every), color_order
@@ -390,8 +396,11 @@ class RerunViewer:
         self.close()
 
     def close(self) -> None:
-        """Flush the stream and close the recording."""
+        """Flush the stream and close the recording (a viewer that cannot be reached is a
+        warning: the run's outputs are written by then)."""
         try:
-            self.rec.flush()
+            self.rec.flush(timeout_sec=10.0)
+        except RuntimeError as exc:
+            print(f"eifslam: warning: the viewer did not receive the whole stream ({exc})", file=sys.stderr)
         finally:
             self.rec.disconnect()
