@@ -17,11 +17,12 @@ entity                             what
 ``world/keyframes``                positions of the poses in the state
 ``world/loops``                    one segment per loop closure, current frame to old frame
 ``loops``                          one text line per loop closure, as it is fused
-``stats/*``                        map size and tracking milliseconds per frame
+``stats/*``                        map size and tracking milliseconds per frame (sent with the map)
 =================================  ==========================================================
 
-The stream costs the tracking little: the per-frame part is the image, its keypoints and
-the pose; the map, the trajectory, the keyframes and the aligned ground truth are sent
+The stream costs the tracking little: the per-frame part is the image (JPEG-encoded where
+it is decoded, in the runner's prefetch thread), its keypoints and the pose; the map, the
+trajectory, the keyframes, the aligned ground truth and the per-frame figures are sent
 every ``every`` keyframes (and at each loop closure). The viewer only reads the system:
 it reads the filter's estimate as it stands (``filter.features()``, never
 :meth:`Slam.map`, whose back substitution would change what tracking reads next), and
@@ -150,22 +151,24 @@ def classify_features(slam: Slam, res: TrackResult, seen: _SeenTracks) -> tuple[
 
 
 class _ImageTap:
-    """A source whose decoded images are also kept for the viewer (the last ``keep``).
+    """A source whose decoded images are also kept for the viewer (the last ``keep``),
+    each as ``prepare`` makes it: called where the image is decoded (the runner's prefetch
+    thread, which then also pays for the JPEG encoding).
 
     Everything but ``load`` is the wrapped source's."""
 
-    def __init__(self, seq, keep: int = 32) -> None:
-        self._seq = seq
+    def __init__(self, seq, prepare: Callable[[np.ndarray], Any], keep: int = 32) -> None:
+        self._seq, self._prepare = seq, prepare
         self._images: deque = deque(maxlen=keep)
 
     def load(self, k: int, *args, **kwargs):
         img = self._seq.load(k, *args, **kwargs)
-        self._images.append((self._seq.frames[k].timestamp, img))
+        self._images.append((self._seq.frames[k].timestamp, self._prepare(img)))
         return img
 
     def take(self, timestamp: float):
-        """The image decoded for the frame of ``timestamp`` (None when it is not kept);
-        the images before it are dropped."""
+        """What was kept of the image of the frame of ``timestamp`` (None when nothing
+        is); what was kept of the frames before it is dropped."""
         for i, (ts, img) in enumerate(list(self._images)):
             if ts == timestamp:
                 for _ in range(i + 1):
@@ -243,6 +246,7 @@ class RerunViewer:
         self._times: list[float] = []  # and timestamps
         self._keyframes = 0
         self._loops = 0
+        self._stats: list[tuple[int, float, float]] = []  # (frame, map features, tracking ms) not yet sent
         self._broken: str | None = None
         self._log_static()
 
@@ -258,7 +262,7 @@ class RerunViewer:
 
     def watch(self, seq):
         """``seq`` with its decoded images kept for the viewer: give the result to the runner."""
-        self._tap = _ImageTap(seq)
+        self._tap = _ImageTap(seq, self._image)
         return self._tap
 
     # -- per frame ------------------------------------------------------------------
@@ -279,16 +283,16 @@ class RerunViewer:
 
         return show
 
-    def log_frame(self, slam: Slam, res: TrackResult, image: np.ndarray | None = None) -> None:
-        """Stream one tracked frame (``image``: the one given to :meth:`Slam.track`, or None)."""
+    def log_frame(self, slam: Slam, res: TrackResult, image=None) -> None:
+        """Stream one tracked frame (``image``: the one given to :meth:`Slam.track`, as an
+        array or as :meth:`_image` made it, or None)."""
         rr, rec = self._rr, self.rec
         rec.set_time("frame", sequence=res.frame_id)
         if image is not None:
-            rec.log("world/camera/image", self._image(image))
+            rec.log("world/camera/image", self._image(image) if isinstance(image, np.ndarray) else image)
         uv, cls = classify_features(slam, res, self._seen)
         rec.log("world/camera/image/features", rr.Points2D(uv, class_ids=cls, radii=2.0))
-        rec.log("stats/map_features", rr.Scalars(float(res.map_features)))
-        rec.log("stats/track_ms", rr.Scalars(float(res.timings_ms.get("total", 0.0))))
+        self._stats.append((res.frame_id, float(res.map_features), float(res.timings_ms.get("total", 0.0))))
         if res.position is not None:
             q = res.quat_wxyz
             rec.log("world/camera", rr.Transform3D(translation=res.position,
@@ -310,7 +314,7 @@ class RerunViewer:
 
     def _image(self, image: np.ndarray):
         """The image for rerun: 8-bit images as JPEG (about a tenth of the raw size, 1 ms
-        for 640x480), others raw."""
+        for 640x480), others raw. Safe to call from the runner's prefetch thread."""
         import cv2
 
         rr = self._rr
@@ -331,6 +335,12 @@ class RerunViewer:
         """The trajectory ``P (N, 3)`` at times ``t (N,)``, the map, keyframes, loops and
         the ground truth aligned to ``P``."""
         rr, rec = self._rr, self.rec
+        if self._stats:  # the per-frame figures since the last update, in one message each
+            frames, features, ms = (np.array(c) for c in zip(*self._stats))
+            self._stats = []
+            index = [rr.TimeColumn("frame", sequence=frames)]
+            rec.send_columns("stats/map_features", indexes=index, columns=rr.Scalars.columns(scalars=features))
+            rec.send_columns("stats/track_ms", indexes=index, columns=rr.Scalars.columns(scalars=ms))
         rec.log("world/trajectory", rr.LineStrips3D([P], colors=[(255, 120, 0)], radii=rr.Radius.ui_points(2.0)))
         if final:
             ids, X, colors = slam.map()
