@@ -120,3 +120,10 @@ def test_the_viewer_without_a_display_ends_in_one_line(data, tmp_path, monkeypat
     assert cli_main(["run", str(data), "--out", str(tmp_path / "out"), "--viewer", "-q"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "needs a display" in err[0] and "--rerun-save" in err[0]
+
+
+def test_a_recording_in_a_missing_folder_ends_in_one_line_before_any_work(data, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert cli_main(["run", str(data), "--out", str(out), "--rerun-save", str(tmp_path / "no" / "r.rrd")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"eifslam: error: --rerun-save: {tmp_path / 'no'} is not a folder"] and not out.exists()

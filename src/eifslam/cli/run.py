@@ -213,6 +213,9 @@ def main(args: argparse.Namespace) -> int:
         from ..viz.viewer import import_rerun
 
         import_rerun(spawn=args.viewer)  # one line saying how to install it, or that there is no display
+        save = getattr(args, "rerun_save", None)
+        if save is not None and not save.parent.is_dir():
+            raise ConfigError(f"--rerun-save: {save.parent} is not a folder")
     guard_outputs(args.out, args.force)
     resume = None
     if args.resume is not None:

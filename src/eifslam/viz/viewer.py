@@ -163,7 +163,11 @@ class _ImageTap:
 
     def load(self, k: int, *args, **kwargs):
         img = self._seq.load(k, *args, **kwargs)
-        self._images.append((self._seq.frames[k].timestamp, self._prepare(img)))
+        try:
+            kept = self._prepare(img)
+        except Exception:  # noqa: BLE001 - an image the viewer cannot show is not shown; the run goes on
+            kept = None
+        self._images.append((self._seq.frames[k].timestamp, kept))
         return img
 
     def take(self, timestamp: float):
