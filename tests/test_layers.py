@@ -27,7 +27,8 @@ ALLOWED: dict[str, set[str]] = {
     "sim": {"geometry", "estimation", "frontend", "system"},
     "system": {"geometry", "estimation", "baselines", "frontend"},
     "evaluation": {"geometry", "estimation", "io", "system", "sim"},
-    "cli": {"geometry", "estimation", "baselines", "frontend", "io", "sim", "system", "evaluation"},
+    "viz": {"geometry", "io", "system", "evaluation"},
+    "cli": {"geometry", "estimation", "baselines", "frontend", "io", "sim", "system", "evaluation", "viz"},
 }
 
 #: layers whose modules may not import OpenCV or matplotlib at all

@@ -98,7 +98,7 @@ def test_full_report(tmp_path):
     assert '<th>timing ms: total</th><td data-value="15.5">15.5</td>' in text
     assert "fake &lt;seq&gt;" in text
     # no ground truth: no evaluation
-    assert "ate-rmse" not in text and "ground_truth.png" not in text
+    assert 'id="ate-rmse"' not in text and "ground_truth.png" not in text
     assert "Figure left out" not in text
     assert "2 initialising, 27 tracking, 1 lost" in text
 
@@ -110,7 +110,7 @@ def test_ground_truth_ate_is_zero(tmp_path):
     s, t = 2.5, np.array([4.0, -1.0, 0.5])
     gt = Trajectory(traj.timestamps, s * traj.positions @ R.T + t, rotmat_to_quat(R @ traj.rotations))
     text = write_report(tmp_path, ground_truth=gt).read_text()
-    ate = float(re.search(r'<span id="ate-rmse">([^<]+)</span>', text).group(1))
+    ate = float(re.search(r'<span id="ate-rmse"[^>]*>([^<]+)</span>', text).group(1))
     assert 0.0 <= ate < 1e-6
     scale = float(re.search(r'<th>Sim\(3\) scale</th><td data-value="([^"]+)">', text).group(1))
     assert scale == pytest.approx(s, rel=1e-6)
@@ -259,7 +259,8 @@ def test_headlines_and_readable_tables(tmp_path):
     assert "<th>Median time per frame, detect (ms)</th>" in text and ">12.35</td>" in text
     assert "<th>ATE RMSE (m)</th>" in text
     # the configuration is a table of its own, folded away
-    assert text.index("<details>") < text.index('id="config-smoothing.mode"') < text.index("</details>")
+    at = text.index('id="config-smoothing.mode"')
+    assert text.rfind("<details>", 0, at) > text.rfind("</details>", 0, at)
     assert 'id="summary-config' not in text
 
 
@@ -289,3 +290,24 @@ def test_sparsity_marks_pose_and_feature_blocks(tmp_path):
     assert "describes 42 entries, the matrix has 120" in write_report(tmp_path).read_text()
     (tmp_path / "state_layout.json").write_text("[1, 2]")
     assert "state_layout.json could not be read" in write_report(tmp_path).read_text()
+
+
+def test_the_page_leads_with_the_trajectory_and_five_numbers(tmp_path):
+    rng = np.random.default_rng(4)
+    traj = _make_run(tmp_path, rng)
+    rep = json.loads((tmp_path / "report.json").read_text())
+    rep.update(frames=30, frames_tracked=29, fps=12.345, keyframes=11, loop_closures=[{"frame": 20}],
+               evaluation={"ate_rmse": 0.5, "units": "m"}, config={"smoothing": {"mode": "smooth"}})
+    (tmp_path / "report.json").write_text(json.dumps(rep))
+    text = write_report(tmp_path, ground_truth=traj).read_text()
+    numbers = {k: re.search(rf'<span id="{k}"[^>]*>([^<]+)</span>', text).group(1)
+               for k in ("frames-tracked", "ate-rmse", "fps", "loops-closed", "keyframes")}
+    assert numbers["frames-tracked"] == "29" and numbers["fps"] == "12.3"
+    assert numbers["loops-closed"] == "1" and numbers["keyframes"] == "11" and float(numbers["ate-rmse"]) < 1e-6
+    sources = _img_sources(text)
+    assert sources[0] == "figures/ground_truth.png" and len(sources) == len(set(sources))  # each figure once
+    first = text.index('<div class="first">')
+    assert max(text.index(f'id="{k}"') for k in numbers) < first < text.index("figures/ground_truth.png")
+    # the tables last, folded; the evaluation once (the one computed from the ground truth)
+    assert text.index("<details>") > text.index(sources[-1])
+    assert text.count("Sim(3) scale") == 1 and 'id="summary-evaluation' not in text

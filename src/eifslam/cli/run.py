@@ -128,6 +128,11 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--resume", type=Path, default=None, metavar="FILE",
                    help="continue a saved session on the frames of SOURCE after those it has "
                         "(with the session's configuration)")
+    p.add_argument("--viewer", action="store_true",
+                   help="open the rerun viewer and stream the run to it (needs the viewer extra: "
+                        "pip install 'eifslam[viewer]')")
+    p.add_argument("--rerun-save", type=Path, default=None, metavar="FILE.rrd",
+                   help="record the viewer's stream into a rerun file, to open later with 'rerun FILE.rrd'")
     add_common_options(p)
     p.set_defaults(func=main)
     return p
@@ -203,6 +208,14 @@ def main(args: argparse.Namespace) -> int:
 
     # everything that can be checked before any work: options, output folder, then source
     scale = parse_scale(args.scale_distance)
+    viewing = getattr(args, "viewer", False) or getattr(args, "rerun_save", None) is not None
+    if viewing:
+        from ..viz.viewer import import_rerun
+
+        import_rerun(spawn=args.viewer)  # one line saying how to install it, or that there is no display
+        save = getattr(args, "rerun_save", None)
+        if save is not None and not save.parent.is_dir():
+            raise ConfigError(f"--rerun-save: {save.parent} is not a folder")
     guard_outputs(args.out, args.force)
     resume = None
     if args.resume is not None:
@@ -220,9 +233,24 @@ def main(args: argparse.Namespace) -> int:
     ensure_output_dir(args.out)
     seq = open_source(args.source, camera=args.camera, topic=args.topic)
     announce(args, config)
-    rep = run_to_folder(seq, config, args.out, max_frames=args.max_frames, scale=scale, html=not args.no_html,
-                        extra=provenance(args, config), quiet=args.quiet, verbose=not args.quiet,
-                        slam=resume, save_session=args.save_session)
+    viewer, on_frame, slam = None, None, resume
+    if viewing:
+        from ..evaluation.outputs import scoring_ground_truth
+        from ..system.slam import Slam
+        from ..viz.viewer import RerunViewer
+
+        gt, _ = scoring_ground_truth(seq)  # drawn, never given to the estimator
+        viewer = RerunViewer(seq.camera, spawn=args.viewer, save=args.rerun_save, ground_truth=gt,
+                             color_order=config.frontend.color_order)
+        slam = resume if resume is not None else Slam(seq.camera, config)
+        seq, on_frame = viewer.watch(seq), viewer.on_frame(slam)
+    try:
+        rep = run_to_folder(seq, config, args.out, max_frames=args.max_frames, scale=scale, html=not args.no_html,
+                            extra=provenance(args, config), quiet=args.quiet, verbose=not args.quiet,
+                            on_frame=on_frame, slam=slam, save_session=args.save_session)
+    finally:
+        if viewer is not None:
+            viewer.finish(slam)
     if rep.get("frames_tracked", 0) == 0:
         raise DatasetError(f"{args.source}: no frame could be tracked ({rep.get('frames', 0)} read; "
                            f"the empty outputs are in {args.out})")

@@ -28,7 +28,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -38,7 +38,7 @@ from ..errors import EifslamError, OutputError
 from ..io import Trajectory, write_ply, write_tum
 from ..io.files import atomic_path, atomic_write, ensure_output_dir
 from ..io.trajectory import TumAppender
-from ..system.slam import Slam, TrackingState
+from ..system.slam import Slam, TrackingState, TrackResult
 
 #: the trajectory as tracked, written frame by frame during a run (removed at its end)
 PARTIAL_TRAJECTORY = "trajectory.partial.tum"
@@ -222,7 +222,8 @@ def summary_line(rep: dict[str, Any], out_dir: str | Path) -> str:
 
 def run_to_folder(seq, config, out_dir: str | Path, max_frames: int | None = None, scale: tuple | None = None,
                   html: bool = True, extra: dict[str, Any] | None = None, quiet: bool = False,
-                  verbose: bool = True, **session: Any) -> dict[str, Any]:
+                  verbose: bool = True, on_frame: Callable[[TrackResult], None] | None = None,
+                  **session: Any) -> dict[str, Any]:
     """Run SLAM over a sequence and write every output into ``out_dir``.
 
     Parameters
@@ -239,6 +240,9 @@ def run_to_folder(seq, config, out_dir: str | Path, max_frames: int | None = Non
         Copied into ``report.json``.
     verbose : bool
         Print :func:`summary_line` to stderr.
+    on_frame : callable, optional
+        Also called with each frame's :class:`TrackResult` as it is tracked (e.g. a live
+        viewer, :class:`eifslam.viz.viewer.RerunViewer`).
     **session
         ``slam`` (a loaded session to continue) and ``save_session`` (a path), passed to
         :func:`~eifslam.system.runner.run_sequence`.
@@ -256,12 +260,13 @@ def run_to_folder(seq, config, out_dir: str | Path, max_frames: int | None = Non
     from ..system.runner import stop_requests
 
     with stop_requests():  # SIGTERM while saving: the saving goes on (the CLI's handler)
-        return _run_and_write(seq, config, out_dir, max_frames, scale, html, extra, quiet, verbose, session)
+        return _run_and_write(seq, config, out_dir, max_frames, scale, html, extra, quiet, verbose, on_frame,
+                              session)
 
 
 def _run_and_write(seq, config, out_dir: str | Path, max_frames: int | None, scale: tuple | None, html: bool,
                    extra: dict[str, Any] | None, quiet: bool, verbose: bool,
-                   session: dict[str, Any]) -> dict[str, Any]:
+                   also: Callable[[TrackResult], None] | None, session: dict[str, Any]) -> dict[str, Any]:
     """:func:`run_to_folder` inside its stop-request block (same parameters)."""
     from ..system.runner import run_sequence
 
@@ -271,6 +276,8 @@ def _run_and_write(seq, config, out_dir: str | Path, max_frames: int | None, sca
     def on_frame(res) -> None:
         if res.position is not None and res.quat_wxyz is not None:
             partial.append(res.timestamp, res.position, res.quat_wxyz)
+        if also is not None:
+            also(res)
 
     try:
         run = run_sequence(seq, config, max_frames=max_frames, scale=scale, quiet=quiet, on_frame=on_frame,

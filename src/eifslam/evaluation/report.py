@@ -305,7 +305,7 @@ def _ground_truth_section(out_dir: Path, traj: Trajectory | None, gt: Trajectory
     from .metrics import evaluate
     from .plots import plot_aligned_map
 
-    sec = _Section("Against ground truth (Sim(3)-aligned)")
+    sec = _Section("Trajectory and map against the ground truth, top view (Sim(3)-aligned)")
     if traj is None or len(traj) == 0:
         sec.notes.append("No estimated trajectory to compare with the ground truth.")
         return sec, None
@@ -335,8 +335,35 @@ def _template() -> jinja2.Template:
     return env.get_template("report.html.j2")
 
 
+def _count(value: Any) -> str | None:
+    """An integer of report.json as text, or None."""
+    return str(int(value)) if isinstance(value, (int, float)) and not isinstance(value, bool) \
+        and math.isfinite(value) else None
+
+
+def _numbers(summary: dict[str, Any] | None, evaluation: dict[str, Any] | None, units: str) -> list[dict]:
+    """The five numbers of the first screen: frames tracked, ATE, fps, loops closed,
+    keyframes (``label``, ``value`` as text or None, ``unit``, ``id``)."""
+    s = summary or {}
+    tracked, frames = _count(s.get("frames_tracked")), _count(s.get("frames"))
+    fps = s.get("fps")
+    loops = s.get("loop_closures")
+    return [
+        dict(label="frames tracked", value=tracked, unit=f"of {frames}" if frames is not None else "",
+             id="frames-tracked"),
+        dict(label="ATE RMSE (Sim(3)-aligned)",
+             value=None if evaluation is None else f"{evaluation['ate_rmse']:.4g}",
+             unit=units if evaluation is not None else "no ground truth", id="ate-rmse"),
+        dict(label="speed", value=f"{fps:.3g}" if isinstance(fps, (int, float)) and not isinstance(fps, bool)
+             and math.isfinite(fps) else None, unit="frames/s", id="fps"),
+        dict(label="loops closed", value=str(len(loops)) if isinstance(loops, list) else None, unit="",
+             id="loops-closed"),
+        dict(label="keyframes", value=_count(s.get("keyframes")), unit="", id="keyframes"),
+    ]
+
+
 def _html(title: str, out_dir: Path, summary: dict[str, Any] | None, summary_notes: list[str],
-          evaluation: dict[str, Any] | None, sections: list[_Section]) -> str:
+          evaluation: dict[str, Any] | None, first: list[_Section], rest: list[_Section]) -> str:
     """Render the page from ``templates/report.html.j2``.
 
     Parameters
@@ -346,29 +373,36 @@ def _html(title: str, out_dir: Path, summary: dict[str, Any] | None, summary_not
     summary : report.json's content (``None`` when it could not be read).
     summary_notes : why report.json is missing or unreadable.
     evaluation : :meth:`.metrics.EvaluationResult.to_dict` against the ground truth, or ``None``.
-    sections : the figures, in page order.
+    first : the figures of the first screen (the trajectory, against the ground truth when
+        there is one, and the map), beside the five numbers.
+    rest : the other figures, in page order.
 
     Returns
     -------
     The HTML text; every string is escaped by the template, the tables of
-    :mod:`.report_tables` arrive escaped already.
+    :mod:`.report_tables` arrive escaped already. The evaluation is one table (the one
+    computed here, else report.json's ``evaluation``); the tables come last, folded away.
     """
     units = str((evaluation or {}).get("units") or (summary or {}).get("ate_units") or GT_UNITS)
     box = (summary or {}).get("box_ratio_estimated")
     true = (summary or {}).get("box_ratio_true")
     has_box = isinstance(box, (int, float)) and not isinstance(box, bool)
     config = (summary or {}).get("config")
+    if evaluation is None and isinstance((summary or {}).get("evaluation"), dict):
+        shown = summary["evaluation"]
+    else:
+        shown = evaluation
+    left_out = ("config",) if shown is None else ("config", "evaluation")
     return _template().render(
-        title=title, out_dir=str(out_dir), units=units,
-        ate_rmse=None if evaluation is None else f"{evaluation['ate_rmse']:.6g}",
+        title=title, out_dir=str(out_dir), units=units, numbers=_numbers(summary, evaluation, units),
         box_ratio=f"{box:.3f}" if has_box else None,
         box_ratio_true=f"{true:.2f}" if has_box and isinstance(true, (int, float)) else None,
         summary=summary, summary_notes=summary_notes,
-        summary_table=Markup(_table(_flatten({k: v for k, v in summary.items() if k != "config"}),
+        summary_table=Markup(_table(_flatten({k: v for k, v in summary.items() if k not in left_out}),
                                     "summary", units)) if summary else None,
         config_table=Markup(_table(_flatten(config), "config")) if isinstance(config, dict) else None,
-        evaluation_table=None if evaluation is None else Markup(_table(_flatten(evaluation), "evaluation", units)),
-        sections=sections)
+        evaluation_table=None if shown is None else Markup(_table(_flatten(shown), "evaluation", units)),
+        first=first, rest=rest)
 
 
 def write_report(out_dir: str | Path, ground_truth: Trajectory | None = None,
@@ -413,18 +447,24 @@ def write_report(out_dir: str | Path, ground_truth: Trajectory | None = None,
     summary_notes: list[str] = []
     summary = _load(out / "report.json", _read_json_dict, summary_notes)
 
-    sections = _map_sections(out, traj, points, colors, map_notes)
+    top, *maps = _map_sections(out, traj, points, colors, map_notes)  # top view, [close-up], 3-D view
+    view = maps.pop()
     evaluation = None
     if ground_truth is not None:
         gt_section, evaluation = _ground_truth_section(out, traj, ground_truth, points, colors, units)
-        sections.append(gt_section)
+        if gt_section.image is not None:  # first screen: against the ground truth, and the map
+            first, rest = [gt_section, view], [top, *maps]
+        else:
+            first, rest = [top, view], [gt_section, *maps]
+    else:
+        first, rest = [top, view], maps
     layout = _load(out / "state_layout.json", _read_layout, info_notes) if (out / "state_layout.json").exists() else None
-    sections.append(_sparsity_section(out, info, info_notes, layout))
-    sections.append(_timing_section(out, frames, frame_notes))
+    rest.append(_sparsity_section(out, info, info_notes, layout))
+    rest.append(_timing_section(out, frames, frame_notes))
 
     path = out / "report.html"
     try:
-        atomic_write(path, _html(title, out, summary, summary_notes, evaluation, sections))
+        atomic_write(path, _html(title, out, summary, summary_notes, evaluation, first, rest))
     except (OSError, OutputError) as exc:
         raise DatasetError(f"{path}: cannot write report ({exc})") from None
     return path
