@@ -310,10 +310,8 @@ def test_indefinite_poses_to_eliminate_fall_back_to_the_full_solve(monkeypatch):
     """When the poses to eliminate have numerically indefinite information (a LinAlgError
     in the elimination), the frame is
     solved by the full sparse solve and the window rebuilt: the run goes on, exact."""
-    import eifslam.estimation.window as winmod
+    import eifslam.estimation.window as winmod  # the window's eliminations call its pose_cholesky
 
-    with pytest.raises(EstimatorError, match="numerically indefinite"):
-        winmod.pose_cholesky(np.diag([1.0, -1.0, 1.0, 1.0, 1.0, 1.0, 1.0]))
     sc, m = scene(40, 3)
     f = InformationFilter(sc.camera, recovery="incremental", window=1)
     real = winmod.pose_cholesky

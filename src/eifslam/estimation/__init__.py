@@ -6,6 +6,7 @@
 * :mod:`.options`: :class:`~.options.FilterConfig` and the typed options ``Recovery``, ``FirstEstimates``, ``NoiseEstimate``.
 * :mod:`.factors`: every measurement kind linearised at an estimate (shared by the back ends).
 * :mod:`.recovery`: sparse Cholesky with features eliminated first (the full solve).
+* :mod:`.blocks`: the 3x3 feature and 7x7 pose blocks: gathered, factorised, inverted, applied in batches.
 * :mod:`.window`: the active window's marginal information, its solve and its eliminations.
 * :mod:`.backsub`: the conditionals of what left the window and their back-substitution.
 * :mod:`.reactivation`: undoing eliminations when a marginalised state is measured again.

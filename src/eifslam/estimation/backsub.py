@@ -29,6 +29,8 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 from scipy.linalg import cho_solve
 
+from .blocks import apply_blocks, block_diagonal_csr
+
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
@@ -90,7 +92,7 @@ class Conditional:
             return
         r = self.b - self.C @ x[self.cidx] if len(self.cidx) else self.b.copy()
         if self.Dinv is not None:
-            x[self.idx] = np.einsum("fij,fj->fi", self.Dinv, r.reshape(-1, 3)).ravel()
+            x[self.idx] = apply_blocks(self.Dinv, r)
         else:
             x[self.idx] = self.factor.solve(r)
 
@@ -122,10 +124,7 @@ class _Merged:
         ncols = int(indices.max()) + 1 if len(indices) else 0
         idx = np.concatenate([c.idx for c in conds])
         C = sp.csr_matrix((np.concatenate(data), indices, np.concatenate(ptr)), shape=(len(idx), ncols))
-        Dinv = np.concatenate([c.Dinv for c in conds])
-        rows = np.repeat(np.arange(len(idx)), 3)
-        cols = (np.arange(len(idx))[:, None] // 3 * 3 + np.arange(3)).ravel()
-        D = sp.csr_matrix((Dinv.reshape(-1, 3).ravel(), (rows, cols)), shape=(len(idx), len(idx)))
+        D = block_diagonal_csr(np.concatenate([c.Dinv for c in conds]))
         return _Merged(tuple(conds), idx, D @ np.concatenate([c.b for c in conds]), sp.csr_matrix(D @ C))
 
     def same(self, conds: list[Conditional]) -> bool:

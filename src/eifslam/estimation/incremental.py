@@ -70,7 +70,8 @@ from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout
 from . import reactivation
 from .backsub import Conditional, Conditionals
 from .reactivation import ReactivationPlan
-from .window import ActiveWindow, pose_cholesky, spd_inverse_3x3
+from .blocks import block_diagonal_csr, inverse_spd_blocks, pose_cholesky, sparse_diagonal_blocks
+from .window import ActiveWindow
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -565,13 +566,7 @@ class IncrementalRecovery:
                                                      factor=factor.restricted(m)))
             else:
                 P, bp = Ia[:, pa].toarray(), i[pa].copy()
-        F = len(fa) // 3
-        coo = I[fa][:, fa].tocoo()
-        same = coo.row // 3 == coo.col // 3
-        if not np.all(same | (coo.data == 0)):
-            raise EstimatorError("two features share a measurement: the information matrix is not of SLAM form")
-        D = np.zeros((F, 3, 3))
-        np.add.at(D, (coo.row[same] // 3, coo.row[same] % 3, coo.col[same] % 3), coo.data[same])
+        D = sparse_diagonal_blocks(I[fa][:, fa])
         self.window.reset_to(pa, fa, P, bp, D, I[fa][:, pa].toarray(), i[fa].copy())
 
 
@@ -596,17 +591,10 @@ class IncrementalRecovery:
         if len(mf):
             F = len(mf) // FEATURE_DIM
             If = I[mf]
-            coo = If[:, mf].tocoo()
-            same = coo.row // 3 == coo.col // 3
-            if not np.all(same | (coo.data == 0)):
-                raise EstimatorError("two features share a measurement: the information matrix is not of SLAM form")
-            D = np.zeros((F, 3, 3))
-            np.add.at(D, (coo.row[same] // 3, coo.row[same] % 3, coo.col[same] % 3), coo.data[same])
-            Dinv = spd_inverse_3x3(D)
+            D = sparse_diagonal_blocks(If[:, mf])
+            Dinv = inverse_spd_blocks(D)
             Bf = sp.csr_matrix(If[:, ps])  # (3F, len(ps))
-            rows = np.repeat(np.arange(3 * F), 3)
-            cols = (np.arange(3 * F)[:, None] // 3 * 3 + np.arange(3)).ravel()
-            Dsp = sp.csr_matrix((Dinv.reshape(3 * F, 3).ravel(), (rows, cols)), shape=(3 * F, 3 * F))
+            Dsp = block_diagonal_csr(Dinv)
             Spp -= (Bf.T @ (Dsp @ Bf)).toarray()
             sv -= Bf.T @ (Dsp @ i[mf])
             nz = np.zeros(len(ps), bool)

@@ -21,7 +21,8 @@ from scipy.linalg import cho_solve
 from ..errors import EstimatorError
 from .state import FEATURE_DIM, POSE_DIM
 from .backsub import Conditional, Conditionals
-from .window import ActiveWindow, pose_cholesky
+from .blocks import apply_blocks, pose_cholesky
+from .window import ActiveWindow
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -199,9 +200,8 @@ def _undo_features(slot: int, blocks: IntArray, window: ActiveWindow, conds: Con
     if np.any(k < 0):
         raise EstimatorError("internal: re-activating features whose poses are not active")
     Dinv = c.Dinv[sel]
-    g = int(sel.sum())
-    DC = np.einsum("fij,fjm->fim", Dinv, Cs.reshape(g, 3, -1)).reshape(3 * g, -1)
-    Db = np.einsum("fij,fj->fi", Dinv, c.b[rows].reshape(g, 3)).ravel()
+    DC = apply_blocks(Dinv, Cs)
+    Db = apply_blocks(Dinv, c.b[rows])
     idx = c.idx[rows]
     window.restore_features(idx, k, Cs.T @ DC, Cs.T @ Db, c.A[sel], Cs, c.b[rows])
     conds.release(idx)

@@ -27,6 +27,7 @@ from scipy.linalg import cho_factor, cho_solve, solve
 
 from ..errors import EstimatorError
 from .backsub import Conditional
+from .blocks import apply_blocks, cholesky_blocks, pose_cholesky
 from .schur import coupled_poses, subtract_gram
 from .state import FEATURE_DIM, POSE_DIM
 
@@ -40,36 +41,6 @@ def _scatter_add(A: Array, flat: IntArray, v: Array) -> None:
     if len(v):
         u, inv = np.unique(flat, return_inverse=True)
         A[np.unravel_index(u, A.shape)] += np.bincount(inv.ravel(), v, minlength=len(u))  # u unique
-
-
-def _cholesky_3x3(D: Array) -> Array:
-    """Lower Cholesky factors of ``(F, 3, 3)`` blocks; raises if a block is not positive definite."""
-    try:
-        return np.linalg.cholesky(D)
-    except np.linalg.LinAlgError:
-        raise EstimatorError("a feature has no information in some direction (seen from one pose only?)") from None
-
-
-def pose_cholesky(A: Array) -> tuple[Array, bool]:
-    """``cho_factor(A, lower=True)`` of the information of poses being eliminated; raises
-    :class:`EstimatorError` when ``A`` is numerically indefinite (``I`` too ill-conditioned
-    for a Cholesky factorisation), so that the caller falls back to a full sparse solve
-    instead of stopping the run."""
-    try:
-        return cho_factor(A, lower=True, check_finite=False)
-    except np.linalg.LinAlgError:
-        raise EstimatorError(f"the information of {len(A) // POSE_DIM} pose(s) to eliminate is numerically "
-                             "indefinite") from None
-
-
-def spd_inverse_3x3(D: Array) -> Array:
-    """Inverses of ``(F, 3, 3)`` blocks; raises if a block is not positive definite."""
-    try:
-        np.linalg.cholesky(D)
-    except np.linalg.LinAlgError:
-        raise EstimatorError("a feature has no information in some direction (seen from one pose only?)") from None
-    return np.linalg.inv(D)
-
 
 
 class ActiveWindow:
@@ -364,11 +335,11 @@ class ActiveWindow:
             solution is not finite.
         """
         F, npw = len(self.D), len(self.pidx)
-        Linv = np.linalg.inv(_cholesky_3x3(self.D)) if F else np.zeros((0, 3, 3))  # D_f = L L^T
+        Linv = np.linalg.inv(cholesky_blocks(self.D)) if F else np.zeros((0, 3, 3))  # D_f = L L^T
         self._Dinv = Linv.transpose(0, 2, 1) @ Linv
         B3 = self.B.reshape(F, 3, npw)
         self._DB = (self._Dinv @ B3).reshape(3 * F, npw)
-        Dbf = np.einsum("fij,fj->fi", self._Dinv, self.bf.reshape(F, 3)).ravel()
+        Dbf = apply_blocks(self._Dinv, self.bf)
         r = self.bp - self.B.T @ Dbf
         self._S_cho, self._S_pidx, self._S_fidx = None, self.pidx.copy(), self.fidx.copy()
         self._W, self._coupled, self._W_of = np.zeros((0, npw)), np.zeros((0, npw // POSE_DIM), bool), None
@@ -394,7 +365,7 @@ class ActiveWindow:
                 indefinite = True
         else:
             xp = r
-        xf = Dbf - np.einsum("fij,fj->fi", self._Dinv, (self.B @ xp).reshape(F, 3)).ravel()
+        xf = Dbf - apply_blocks(self._Dinv, self.B @ xp)
         if not (np.all(np.isfinite(xp)) and np.all(np.isfinite(xf))):
             raise EstimatorError("state recovery produced non-finite values")
         self.xp, self.xf = xp, xf
@@ -412,7 +383,7 @@ class ActiveWindow:
         else:
             self.P -= Bm.T @ self._DB[rows]
         Dinv_m = self._Dinv[stale]
-        self.bp -= Bm.T @ np.einsum("fij,fj->fi", Dinv_m, self.bf[rows].reshape(-1, 3)).ravel()
+        self.bp -= Bm.T @ apply_blocks(Dinv_m, self.bf[rows])
         nz = np.flatnonzero(np.any(Bm != 0, axis=0))
         # CSR: a feature is coupled to the few poses that saw it, not to every pose
         # the batch's features saw (dense, the batch's C was ~80% zeros on the loop world)
@@ -459,4 +430,4 @@ class ActiveWindow:
         self.P = 0.5 * (self.P + self.P.T)
 
 
-__all__ = ["ActiveWindow", "pose_cholesky", "spd_inverse_3x3"]
+__all__ = ["ActiveWindow"]
