@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eifslam.errors import ConfigError, EstimatorError
+from eifslam.errors import ConfigError
 from eifslam.estimation.filter import InformationFilter
 from eifslam.estimation.incremental import IncrementalRecovery
 from eifslam.estimation.measurements import RelativePose
