@@ -13,6 +13,7 @@
 * :mod:`.incremental`: the incremental recovery driver, which owns the window and the conditionals.
 * :mod:`.filter`: :class:`~.filter.InformationFilter`, Algorithm 1's fusion (eq. 8).
 * :mod:`.backend`: the :class:`~.backend.Backend` protocol the EIF and the dense EKF satisfy.
+* :mod:`.gauss_newton`: the relinearise-then-solve pass that smoothing, loop correction and the online relinearisation share.
 * :mod:`.smoothing`: relinearise-and-recover (III-E); :mod:`.scale`: scale recovery (V).
 * :mod:`.initialisation`, :mod:`.localisation`: initial guesses of poses and features.
 
