@@ -38,7 +38,7 @@ def test_merged_chunks_equal_one_by_one_and_follow_undone_conditionals(monkeypat
             filt.recover_active()
         a = filt.x.copy()
         inc.full_solution(a)
-        b = one_by_one(inc._conds, filt.x.copy())  # noqa: SLF001
+        b = one_by_one(inc.conditionals.slots, filt.x.copy())
         diffs.append(float(np.max(np.abs(a - b))) / max(1.0, float(np.abs(b).max())))
 
     run_slam(sc, m, f, on_frame=check)
@@ -58,15 +58,15 @@ def test_a_chunk_is_merged_once_and_again_only_when_its_conditionals_change(monk
     built = []
     real_of = backsub._Merged.of  # noqa: SLF001
     monkeypatch.setattr(backsub._Merged, "of", staticmethod(lambda conds: built.append(len(conds)) or real_of(conds)))  # noqa: SLF001
-    inc._backsub = None  # noqa: SLF001
+    inc.conditionals.backsub.clear()
     x1 = inc.full_solution(f.x.copy())
     n_first = len(built)
     assert n_first > 2
     x2 = inc.full_solution(f.x.copy())
     assert len(built) == n_first and np.array_equal(x1, x2)  # cached: nothing merged again
-    slot = next(s for s, c in enumerate(inc._conds) if c is not None and c.Dinv is not None)  # noqa: SLF001
-    assert inc._reactivate(np.array([inc._conds[slot].idx[0]]))  # noqa: SLF001
-    inc._solve()  # noqa: SLF001
+    slot = next(s for s, c in enumerate(inc.conditionals.slots) if c is not None and c.Dinv is not None)
+    assert inc.reactivate(np.array([inc.conditionals[slot].idx[0]]))
+    inc.window.solve()
     x3 = inc.full_solution(f.x.copy())
     assert n_first < len(built) <= n_first + 1  # the changed chunk alone
     assert rel_err(x3, full_solve(f)) < 1e-8
@@ -83,11 +83,11 @@ def test_recent_solution_is_exact_for_the_recent_states_and_leaves_the_older_one
     stale = np.full(f.dim, 123.0)  # marks what a recent back substitution must not touch
     got = inc.recent_solution(stale.copy(), slots)
     recent = np.zeros(f.dim, bool)
-    for c in inc._conds[-slots:]:  # noqa: SLF001
+    for c in inc.conditionals.slots[-slots:]:
         if c is not None:
             recent[c.idx] = True
     active = np.zeros(f.dim, bool)
-    active[inc.pidx] = active[inc.fidx] = True
+    active[inc.window.pidx] = active[inc.window.fidx] = True
     assert recent.sum() > 0 and (~(recent | active)).sum() > 0
     np.testing.assert_allclose(got[recent | active], exact[recent | active], rtol=1e-9, atol=1e-9)
     assert np.all(got[~(recent | active)] == 123.0)

@@ -6,10 +6,14 @@
 * :mod:`.options`: :class:`~.options.FilterConfig` and the typed options ``Recovery``, ``FirstEstimates``, ``NoiseEstimate``.
 * :mod:`.factors`: every measurement kind linearised at an estimate (shared by the back ends).
 * :mod:`.recovery`: sparse Cholesky with features eliminated first (the full solve).
-* :mod:`.window`: the active window's marginal information and the conditionals of what left it.
-* :mod:`.incremental`: the incremental recovery driver (exact over the window, the rest marginalised).
+* :mod:`.blocks`: the 3x3 feature and 7x7 pose blocks: gathered, factorised, inverted, applied in batches.
+* :mod:`.window`: the active window's marginal information, its solve and its eliminations.
+* :mod:`.backsub`: the conditionals of what left the window and their back-substitution.
+* :mod:`.reactivation`: undoing eliminations when a marginalised state is measured again.
+* :mod:`.incremental`: the incremental recovery driver, which owns the window and the conditionals.
 * :mod:`.filter`: :class:`~.filter.InformationFilter`, Algorithm 1's fusion (eq. 8).
 * :mod:`.backend`: the :class:`~.backend.Backend` protocol the EIF and the dense EKF satisfy.
+* :mod:`.gauss_newton`: the relinearise-then-solve pass that smoothing, loop correction and the online relinearisation share.
 * :mod:`.smoothing`: relinearise-and-recover (III-E); :mod:`.scale`: scale recovery (V).
 * :mod:`.initialisation`, :mod:`.localisation`: initial guesses of poses and features.
 

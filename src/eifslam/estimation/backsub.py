@@ -1,7 +1,10 @@
 """Conditionals of the incremental window and their back-substitution (pure NumPy/SciPy).
 
-:meth:`~eifslam.estimation.window.ActiveWindow.full_solution` recovers every marginalised
-state from its conditional, ``x_q = A^-1 (b_q - C x_sep)``, newest first. Applied one by
+:class:`Conditionals` holds the conditionals of the states the incremental window
+eliminated, in elimination order, and which one holds each state entry;
+:meth:`Conditionals.back_substitute` (used by
+:meth:`~eifslam.estimation.incremental.IncrementalRecovery.full_solution`) recovers every
+marginalised state from its conditional, ``x_q = A^-1 (b_q - C x_sep)``, newest first. Applied one by
 one, a long run's thousands of small feature conditionals cost more in per-call overhead
 than in arithmetic (on the loop world, ``recover`` grew from 17 to 60 ms a frame over
 1040 frames without loop closure).
@@ -26,10 +29,12 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 from scipy.linalg import cho_solve
 
+from .blocks import apply_blocks, block_diagonal_csr
+
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["CHUNK", "BackSubstitution", "Conditional"]
+__all__ = ["CHUNK", "BackSubstitution", "Conditional", "Conditionals"]
 
 #: consecutive conditional slots merged into one product
 CHUNK = 64
@@ -50,7 +55,7 @@ class Conditional:
     chol : poses: Cholesky factor of ``A`` (``cho_factor``).
     factor : rebuild: factorisation of the eliminated part (cannot be undone).
     A : (m/3, 3, 3) features or (m, m) poses: the eliminated information block, kept so
-        that the elimination can be undone exactly (:meth:`IncrementalRecovery._reactivate`).
+        that the elimination can be undone exactly (:mod:`eifslam.estimation.reactivation`).
     """
 
     idx: IntArray
@@ -87,7 +92,7 @@ class Conditional:
             return
         r = self.b - self.C @ x[self.cidx] if len(self.cidx) else self.b.copy()
         if self.Dinv is not None:
-            x[self.idx] = np.einsum("fij,fj->fi", self.Dinv, r.reshape(-1, 3)).ravel()
+            x[self.idx] = apply_blocks(self.Dinv, r)
         else:
             x[self.idx] = self.factor.solve(r)
 
@@ -119,10 +124,7 @@ class _Merged:
         ncols = int(indices.max()) + 1 if len(indices) else 0
         idx = np.concatenate([c.idx for c in conds])
         C = sp.csr_matrix((np.concatenate(data), indices, np.concatenate(ptr)), shape=(len(idx), ncols))
-        Dinv = np.concatenate([c.Dinv for c in conds])
-        rows = np.repeat(np.arange(len(idx)), 3)
-        cols = (np.arange(len(idx))[:, None] // 3 * 3 + np.arange(3)).ravel()
-        D = sp.csr_matrix((Dinv.reshape(-1, 3).ravel(), (rows, cols)), shape=(len(idx), len(idx)))
+        D = block_diagonal_csr(np.concatenate([c.Dinv for c in conds]))
         return _Merged(tuple(conds), idx, D @ np.concatenate([c.b for c in conds]), sp.csr_matrix(D @ C))
 
     def same(self, conds: list[Conditional]) -> bool:
@@ -172,3 +174,64 @@ class BackSubstitution:
                 merged = self._chunks[chunk] = _Merged.of(group)
             merged.apply(x)
         return x
+
+
+class Conditionals:
+    """The conditionals of the eliminated states, in elimination order, and the slot that
+    holds each eliminated state entry.
+
+    Parameters
+    ----------
+    n : int
+        Entries of the state so far (the length of :attr:`owner`).
+
+    Attributes
+    ----------
+    slots : list of Conditional or None
+        In elimination order; None once undone.
+    owner : (n,) int64
+        Slot of each eliminated entry, -1 for an entry that is not eliminated.
+    backsub : BackSubstitution
+        The back-substitution with its cache of merged feature conditionals.
+    """
+
+    def __init__(self, n: int = 0) -> None:
+        self.slots: list[Conditional | None] = []
+        self.owner = np.full(n, -1, np.int64)
+        self.backsub = BackSubstitution()
+
+    def __len__(self) -> int:
+        return len(self.slots)
+
+    def __getitem__(self, slot: int) -> Conditional | None:
+        return self.slots[slot]
+
+    def grow(self, n: int) -> None:
+        """The state has ``n`` entries now (the new ones are not eliminated)."""
+        self.owner = np.concatenate([self.owner, np.full(n - len(self.owner), -1, np.int64)])
+
+    def clear(self, n: int) -> None:
+        """No conditional (a rebuild starts afresh); the state has ``n`` entries."""
+        self.slots = []
+        self.owner = np.full(n, -1, np.int64)
+        self.backsub = BackSubstitution()  # its merged chunks were of the old conditionals
+
+    def append(self, cond: Conditional) -> int:
+        """Store the conditional of a new elimination; returns its slot."""
+        self.slots.append(cond)
+        slot = len(self.slots) - 1
+        self.owner[cond.idx] = slot
+        return slot
+
+    def replace(self, slot: int, cond: Conditional | None) -> None:
+        """What remains eliminated of ``slot`` after part of it was undone (None: nothing)."""
+        self.slots[slot] = cond
+
+    def release(self, idx: IntArray) -> None:
+        """Entries ``idx`` are no longer eliminated."""
+        self.owner[idx] = -1
+
+    def back_substitute(self, x: Array, start: int = 0) -> Array:
+        """Recover the states of the slots from ``start`` on into ``x`` (in place), whose
+        active entries hold the window's solution (:meth:`BackSubstitution.apply`)."""
+        return self.backsub.apply(self.slots, x, start=start)

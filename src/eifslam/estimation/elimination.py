@@ -23,7 +23,8 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from .recovery import SchurFactor, factorize_onto, feature_blocks, gram_by_blocks, inverse_blocks, reduced_onto
+from .blocks import apply_blocks, block_entries, inverse_spd_blocks
+from .recovery import SchurFactor, factorize_onto, feature_blocks, gram_by_blocks, reduced_onto
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -102,9 +103,9 @@ class FeatureElimination:
             self.B, self.y = self.B[kept_rows], self.y[kept_rows]
         add = feat_starts[~np.isin(feat_starts, self.starts)]
         if len(add):
-            D, Ba = feature_blocks(I, (add[:, None] + np.arange(3)).ravel(), pose_entries)
-            Dinv = inverse_blocks(D)
-            y = np.einsum("fij,fj->fi", Dinv, np.asarray(i, float)[add[:, None] + np.arange(3)]).ravel()
+            D, Ba = feature_blocks(I, block_entries(add), pose_entries)
+            Dinv = inverse_spd_blocks(D)
+            y = apply_blocks(Dinv, np.asarray(i, float)[block_entries(add)])
             self.G = self.G + gram_by_blocks(Ba, Dinv)
             self.g = self.g + Ba.T @ y
             self.starts = np.concatenate([self.starts, add])
@@ -145,7 +146,7 @@ class FeatureElimination:
 
     def entries(self) -> IntArray:
         """The eliminated features' state entries ``(3 F,)``, in the order of ``B``'s rows."""
-        return (self.starts[:, None] + np.arange(3)).ravel()
+        return block_entries(self.starts)
 
     def _pad(self, N: int) -> None:
         """Grow the pose columns to ``N`` (new poses: no eliminated feature couples to them yet)."""
@@ -160,4 +161,4 @@ class FeatureElimination:
     @staticmethod
     def _rows(blocks: IntArray) -> IntArray:
         """The rows of ``B`` (and ``y``) of the features at positions ``blocks``."""
-        return (3 * np.asarray(blocks, np.int64)[:, None] + np.arange(3)).ravel()
+        return block_entries(3 * np.asarray(blocks, np.int64))

@@ -25,6 +25,7 @@ from ..geometry import models
 from ..geometry.camera import PinholeCamera
 from .measurements import FeatureObservations, RelativePose
 from .options import FilterConfig
+from .gauss_newton import information_terms
 from .state import StateLayout
 
 Array = NDArray[np.float64]
@@ -61,9 +62,8 @@ class Linearised:
 
     def information(self, x: Array) -> tuple[Array, Array]:
         """``(J^T W J (N, k, k), J^T W (innov + J x[idx]) (N, k))``: paper eq. 8's terms."""
-        JtW = np.swapaxes(self.J, 1, 2) @ self.W
         rhs = self.z if self.z is not None else self.innov + np.einsum("nmk,nk->nm", self.J, x[self.idx])
-        return JtW @ self.J, np.einsum("nkm,nm->nk", JtW, rhs)
+        return information_terms(self.J, self.W, rhs)
 
 
 def _direct(idx: IntArray, z: Array, x: Array, w: float) -> Linearised:

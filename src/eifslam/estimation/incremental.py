@@ -36,7 +36,7 @@ after a long exploration would bring back hundreds of poses into the dense windo
 (minutes at 100,000 entries); a pose batch is undone only in part when only some of
 its poses are needed (the rest is eliminated again onto the window and those poses).
 So the work is estimated first
-(:meth:`~eifslam.estimation.reactivation.ReactivatingWindow.reactivation_flops`) and,
+(:func:`~eifslam.estimation.reactivation.reactivation_flops`) and,
 when it exceeds the cost of one full sparse solve (:meth:`IncrementalRecovery.rebuild_flops`),
 or when a state lies inside a rebuild's sparse factorisation (which cannot be undone),
 the window is rebuilt from the full sparse ``I`` instead (counted as a fallback): the
@@ -67,12 +67,51 @@ from .information import InformationStore
 from .elimination import FeatureElimination
 from .statedict import sub, take_ids, take_int
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout
-from .reactivation import ReactivatingWindow
-from .backsub import Conditional
-from .window import RecoveryStats, pose_cholesky, spd_inverse_3x3
+from . import reactivation
+from .backsub import Conditional, Conditionals
+from .reactivation import ReactivationPlan
+from .blocks import block_diagonal_csr, inverse_spd_blocks, pose_cholesky, sparse_diagonal_blocks
+from .window import ActiveWindow
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+
+@dataclass
+class RecoveryStats:
+    """Counters of :class:`IncrementalRecovery`.
+
+    Attributes
+    ----------
+    steps : recoveries done.
+    fallbacks : steps where a measurement touched a marginalised state that could not be
+        re-activated (full rebuild), plus solves that failed (see
+        :meth:`eifslam.estimation.filter.InformationFilter.recover_active`).
+    rebuilds : full rebuilds for any reason (fallbacks, ``I`` reset/set, first use).
+    reactivations : steps where a measurement touched marginalised states and they were
+        re-activated (their conditionals undone, no rebuild).
+    reactivated_poses, reactivated_features : states brought back into the window so far
+        (the touched ones and the later-eliminated poses they were conditioned on).
+    marginalised_poses, marginalised_features : states eliminated so far (re-eliminations
+        included).
+    window_poses, window_features : size of the active window after the last step.
+    max_window_poses : largest number of active poses solved in one step.
+    indefinite_solves : steps whose pose Schur complement was numerically indefinite
+        (solved by ``LDL^T`` instead of Cholesky; see :meth:`ActiveWindow.solve`).
+    """
+
+    steps: int = 0
+    fallbacks: int = 0
+    rebuilds: int = 0
+    reactivations: int = 0
+    reactivated_poses: int = 0
+    reactivated_features: int = 0
+    marginalised_poses: int = 0
+    marginalised_features: int = 0
+    window_poses: int = 0
+    window_features: int = 0
+    max_window_poses: int = 0
+    indefinite_solves: int = 0
 
 
 class InformationListener(Protocol):
@@ -160,12 +199,14 @@ class EntryMap:
 
 
 @dataclass
-class IncrementalRecovery(ReactivatingWindow):
+class IncrementalRecovery:
     """Exact recovery of ``I x = i`` restricted to an active window, updated per step.
 
     The driver: it follows the layout and the fusions, decides what to rebuild,
-    re-activate and marginalise; the window and its conditionals
-    (:class:`~eifslam.estimation.window.ActiveWindow`) do the algebra.
+    re-activate and marginalise. It owns the active window (:attr:`window`, an
+    :class:`~eifslam.estimation.window.ActiveWindow`) and the conditionals of the states
+    that left it (:attr:`conditionals`, :class:`~eifslam.estimation.backsub.Conditionals`),
+    which do the algebra, and re-activates through :mod:`~eifslam.estimation.reactivation`.
 
     Parameters
     ----------
@@ -191,10 +232,10 @@ class IncrementalRecovery(ReactivatingWindow):
         undone).
     undoable_rebuild_pose_entries : int
         A rebuild that eliminates at most this many pose entries (300 poses) does so as
-        :meth:`_marginalise` would, into a feature batch and one dense pose batch
+        :meth:`_marginalise` does, into a feature batch and one dense pose batch
         (:meth:`_eliminate_undoably`), so that a state measured again after a rebuild is
         re-activated (only the poses its features need come back, see
-        :meth:`~eifslam.estimation.reactivation.ReactivatingWindow._undo_poses`) instead
+        :func:`~eifslam.estimation.reactivation.reactivate`) instead
         of rebuilding once more: on a sequence that keeps revisiting old places, one
         rebuild per frame otherwise. Larger eliminations use one sparse factorisation
         (:func:`~eifslam.estimation.recovery.reduced_onto`; ``q x q`` dense would cost
@@ -224,15 +265,13 @@ class IncrementalRecovery(ReactivatingWindow):
                 raise ConfigError(f"{key} must be a non-negative number, got {v!r}")
         self._map = EntryMap()
         self._last = np.zeros(0, np.int64)  # step of the last measurement, at block starts
-        self._pos = np.zeros(0, np.int64)  # position in the window, -1 once marginalised
-        self._owner = np.zeros(0, np.int64)  # slot in _conds of a marginalised entry, else -1
         self._pending: list[tuple[IntArray, Array, Array, bool]] = []  # (idx, Lam, eta, a measurement?)
         self._measuring = True
         self._valid = False
         self._late: list[IntArray] = []  # entries measured while the window was invalid
-        self._conds: list[Conditional | None] = []  # elimination order; None once undone
         self._elim = FeatureElimination()  # the sparse rebuilds' feature elimination, kept
-        self._reset_window()
+        self.window = ActiveWindow()
+        self.conditionals = Conditionals()
 
     # -- pickling -----------------------------------------------------------------------
     def __getstate__(self) -> dict:
@@ -241,9 +280,8 @@ class IncrementalRecovery(ReactivatingWindow):
         and rebuilds from the full ``I`` at its next :meth:`step`. Pickle the owner's
         complete estimate (:meth:`full_solution`) if it is needed after loading."""
         state = self.__dict__.copy()
-        state.update(self.empty_window(), _conds=[], _backsub=None, _pending=[], _late=[], _valid=False,
-                     _elim=FeatureElimination(),
-                     _owner=np.full(len(self._owner), -1, np.int64), _pos=np.full(len(self._pos), -1, np.int64))
+        state.update(window=ActiveWindow(len(self.window.pos)), conditionals=Conditionals(len(self.conditionals.owner)),
+                     _pending=[], _late=[], _valid=False, _elim=FeatureElimination())
         return state
 
     def __setstate__(self, state: dict) -> None:
@@ -331,8 +369,9 @@ class IncrementalRecovery(ReactivatingWindow):
         new = self._map.sync(layout)
         n = self._map.n
         self._last = np.concatenate([self._last, np.full(n - len(self._last), s, np.int64)])
-        self._pos = np.concatenate([self._pos, np.full(n - len(self._pos), -1, np.int64)])
-        self._owner = np.concatenate([self._owner, np.full(n - len(self._owner), -1, np.int64)])
+        w = self.window
+        w.grow(n)
+        self.conditionals.grow(n)
         pending, self._pending = self._pending, []
         touched = np.concatenate([p[0].ravel() for p in pending]) if pending else np.zeros(0, np.int64)
         measured = [p[0].ravel() for p in pending if p[3]] + self._late
@@ -343,8 +382,8 @@ class IncrementalRecovery(ReactivatingWindow):
         if not self._valid:
             self._rebuild(info, s)
         else:
-            self._append(new)
-            marg = np.unique(self._map.start[touched[self._pos[touched] < 0]])
+            w.append(new)
+            marg = np.unique(self._map.start[touched[w.pos[touched] < 0]])
             plan = self.plan_reactivation(marg) if len(marg) else None
             if len(marg) and (plan is None or self.reactivation_flops(plan) > self.rebuild_flops()):
                 st.fallbacks += 1
@@ -352,16 +391,109 @@ class IncrementalRecovery(ReactivatingWindow):
                 restart = True
             else:
                 if len(marg):
-                    self._reactivate(marg, plan)
+                    self.reactivate(marg, plan)
                 for idx, Lam, eta, _ in pending:
-                    self._route(idx, Lam, eta)
-        self._solve()
-        x[self.pidx], x[self.fidx] = self.xp, self.xf
+                    w.add(idx, Lam, eta, self._map.is_feature, self._map.start)
+        if w.solve():
+            st.indefinite_solves += 1
+        w.write_solution(x)
         if restart:  # e.g. a loop closure: every state moved; one back substitution
             self.full_solution(x)
-        st.max_window_poses = max(st.max_window_poses, len(self.pidx) // POSE_DIM)
+        st.max_window_poses = max(st.max_window_poses, len(w.pidx) // POSE_DIM)
         self._marginalise(s)
-        st.window_poses, st.window_features = len(self.pidx) // POSE_DIM, len(self.fidx) // FEATURE_DIM
+        st.window_poses, st.window_features = len(w.pidx) // POSE_DIM, len(w.fidx) // FEATURE_DIM
+
+    def _marginalise(self, s: int) -> None:
+        """Eliminate the features not measured for ``feature_window`` steps, then the poses
+        not measured for ``pose_window`` steps that no active feature is coupled to."""
+        w, last = self.window, self._last
+        fstale = (s - last[w.fidx[::FEATURE_DIM]]) >= self.feature_window
+        if np.any(fstale):
+            self.conditionals.append(w.eliminate_features(fstale))
+            self.stats.marginalised_features += int(fstale.sum())
+        pstale = ((s - last[w.pidx[::POSE_DIM]]) >= self.pose_window) & ~w.coupled_poses()
+        if np.any(pstale):
+            self.conditionals.append(w.eliminate_poses(pstale))
+            self.stats.marginalised_poses += int(pstale.sum())
+        w.symmetrise()
+
+    # -- re-activation ----------------------------------------------------------------------
+    def plan_reactivation(self, blocks: IntArray) -> ReactivationPlan | None:
+        """:func:`~eifslam.estimation.reactivation.plan_reactivation` of marginalised
+        ``blocks`` (block starts) over this window and its conditionals."""
+        return reactivation.plan_reactivation(blocks, self.window, self.conditionals, self._map.start)
+
+    def reactivation_flops(self, plan: ReactivationPlan) -> float:
+        """:func:`~eifslam.estimation.reactivation.reactivation_flops` of ``plan``."""
+        return reactivation.reactivation_flops(plan, self.window, self.conditionals)
+
+    def reactivate(self, blocks: IntArray, plan: ReactivationPlan | None = None) -> bool:
+        """Bring marginalised states (block starts ``blocks``) back into the window by
+        undoing their eliminations (:func:`~eifslam.estimation.reactivation.reactivate`;
+        ``plan``: :meth:`plan_reactivation` of ``blocks`` when already made). Returns False,
+        with nothing changed, when a requested state lies in a rebuild conditional (a
+        sparse factorisation, which cannot be undone); True otherwise."""
+        plan = self.plan_reactivation(blocks) if plan is None else plan
+        if plan is None:
+            return False
+        reactivation.reactivate(plan, self.window, self.conditionals, self._map.start)
+        st = self.stats
+        st.reactivations += 1
+        st.reactivated_poses += sum(len(v) for v in plan.poses.values())
+        st.reactivated_features += sum(len(v) for v in plan.features.values())
+        return True
+
+    # -- the estimate and its covariances ---------------------------------------------------
+    @property
+    def active_indices(self) -> IntArray:
+        """State indices of the active window (poses then features)."""
+        return self.window.active_indices
+
+    def full_solution(self, x: Array) -> Array:
+        """Back-substitute every marginalised state into ``x`` (in place) in ``O(n)``
+        (:class:`~eifslam.estimation.backsub.BackSubstitution`: the poses newest first,
+        then the features in merged chunks).
+
+        The window's solution is written into ``x`` first (as :meth:`step` left it);
+        entries added to the layout after the last step are left untouched.
+        """
+        if not self.window.solved:
+            return x  # the window changed without a solve: nothing consistent to add
+        self.window.write_solution(x)
+        return self.conditionals.back_substitute(x)
+
+    def recent_solution(self, x: Array, slots: int) -> Array:
+        """:meth:`full_solution` for the states of the last ``slots`` conditionals only
+        (about two a step: one feature batch, one pose batch), exact for those; older
+        marginalised states keep the values ``x`` has. The cost is bounded by ``slots``,
+        not by the size of the state."""
+        if not self.window.solved:
+            return x
+        self.window.write_solution(x)
+        return self.conditionals.back_substitute(x, start=len(self.conditionals) - int(slots))
+
+    def pose_covariance(self, cols: IntArray) -> Array | None:
+        """Marginal covariance of active pose entries ``cols`` (k,) from the window as last
+        solved (:meth:`ActiveWindow.pose_covariance`); None when an entry is not an active
+        pose or the window is stale."""
+        return self.window.pose_covariance(cols) if self._valid else None
+
+    def feature_covariances(self, starts: IntArray) -> Array:
+        """Marginal covariances ``(F, 3, 3)`` of the features whose first entries are
+        ``starts`` (F,) from the window as last solved
+        (:meth:`ActiveWindow.feature_covariances`); NaN for a feature that was not active
+        then, and for all when the window is stale."""
+        if not self._valid:
+            return np.full((np.size(starts), 3, 3), np.nan)
+        return self.window.feature_covariances(starts)
+
+    def propagate(self, pose_starts: IntArray, starts: IntArray, G: Array) -> Array | None:
+        """``G P G^T`` for the joint marginal covariance ``P`` of active poses and features
+        (:meth:`ActiveWindow.propagate`). When the window is stale: None if poses are asked
+        for, else zero (the features count as exact)."""
+        if not self._valid:
+            return None if np.size(pose_starts) else np.zeros((np.shape(G)[0],) * 2)
+        return self.window.propagate(pose_starts, starts, G)
 
     def reactivation_affordable(self, starts: IntArray) -> bool:
         """Whether new measurements of the states whose blocks start at ``starts`` would be
@@ -371,8 +503,9 @@ class IncrementalRecovery(ReactivatingWindow):
         if not self._valid:
             return True
         starts = np.unique(np.asarray(starts, np.int64))
-        starts = starts[starts < len(self._pos)]
-        marg = starts[self._pos[starts] < 0]
+        pos = self.window.pos
+        starts = starts[starts < len(pos)]
+        marg = starts[pos[starts] < 0]
         if not len(marg):
             return True
         plan = self.plan_reactivation(marg)
@@ -421,9 +554,7 @@ class IncrementalRecovery(ReactivatingWindow):
         active = np.zeros(n, bool)
         active[fa] = active[pa] = True
         m = np.flatnonzero(~active)
-        self._conds = []
-        self._backsub = None  # its merged chunks were of the old conditionals
-        self._owner = np.full(n, -1, np.int64)
+        self.conditionals.clear(n)
         mf, mp = m[isf[m]], m[~isf[m]]
         if len(m) and 0 < self.undoable_rebuild_pose_entries and len(mp) <= self.undoable_rebuild_pose_entries:
             P, bp = self._eliminate_undoably(I, i, pa, mf, mp)
@@ -431,25 +562,12 @@ class IncrementalRecovery(ReactivatingWindow):
             Ia = I[pa]  # (7p, n): the active poses' rows; I_ma is its transpose (I symmetric)
             if len(m):
                 factor, P, bp = self._elim.onto(I, i, mp, mf, pa, pose_all, self._map.start)
-                self._conds.append(Conditional(m, i[m].copy(), sp.csr_matrix(Ia.T)[m], pa,
-                                               factor=factor.restricted(m)))
-                self._owner[m] = 0
+                self.conditionals.append(Conditional(m, i[m].copy(), sp.csr_matrix(Ia.T)[m], pa,
+                                                     factor=factor.restricted(m)))
             else:
                 P, bp = Ia[:, pa].toarray(), i[pa].copy()
-        self._pos[:] = -1
-        self.pidx, self.fidx = pa, fa
-        self._pos[pa] = np.arange(len(pa))
-        self._pos[fa] = np.arange(len(fa))
-        self.P, self.bp = 0.5 * (P + P.T), bp
-        F = len(fa) // 3
-        coo = I[fa][:, fa].tocoo()
-        same = coo.row // 3 == coo.col // 3
-        if not np.all(same | (coo.data == 0)):
-            raise EstimatorError("two features share a measurement: the information matrix is not of SLAM form")
-        self.D = np.zeros((F, 3, 3))
-        np.add.at(self.D, (coo.row[same] // 3, coo.row[same] % 3, coo.col[same] % 3), coo.data[same])
-        self.B = I[fa][:, pa].toarray()
-        self.bf = i[fa].copy()
+        D = sparse_diagonal_blocks(I[fa][:, fa])
+        self.window.reset_to(pa, fa, P, bp, D, I[fa][:, pa].toarray(), i[fa].copy())
 
 
     def _eliminate_undoably(self, I: sp.csr_matrix, i: Array, pa: IntArray, mf: IntArray,
@@ -473,23 +591,15 @@ class IncrementalRecovery(ReactivatingWindow):
         if len(mf):
             F = len(mf) // FEATURE_DIM
             If = I[mf]
-            coo = If[:, mf].tocoo()
-            same = coo.row // 3 == coo.col // 3
-            if not np.all(same | (coo.data == 0)):
-                raise EstimatorError("two features share a measurement: the information matrix is not of SLAM form")
-            D = np.zeros((F, 3, 3))
-            np.add.at(D, (coo.row[same] // 3, coo.row[same] % 3, coo.col[same] % 3), coo.data[same])
-            Dinv = spd_inverse_3x3(D)
+            D = sparse_diagonal_blocks(If[:, mf])
+            Dinv = inverse_spd_blocks(D)
             Bf = sp.csr_matrix(If[:, ps])  # (3F, len(ps))
-            rows = np.repeat(np.arange(3 * F), 3)
-            cols = (np.arange(3 * F)[:, None] // 3 * 3 + np.arange(3)).ravel()
-            Dsp = sp.csr_matrix((Dinv.reshape(3 * F, 3).ravel(), (rows, cols)), shape=(3 * F, 3 * F))
+            Dsp = block_diagonal_csr(Dinv)
             Spp -= (Bf.T @ (Dsp @ Bf)).toarray()
             sv -= Bf.T @ (Dsp @ i[mf])
             nz = np.zeros(len(ps), bool)
             nz[Bf.indices] = True
-            self._conds.append(Conditional(mf, i[mf].copy(), Bf[:, np.flatnonzero(nz)], ps[nz], Dinv=Dinv, A=D))
-            self._owner[mf] = len(self._conds) - 1
+            self.conditionals.append(Conditional(mf, i[mf].copy(), Bf[:, np.flatnonzero(nz)], ps[nz], Dinv=Dinv, A=D))
             self.stats.marginalised_features += F
         Spp = 0.5 * (Spp + Spp.T)
         P, bp = Spp[:na, :na], sv[:na]
@@ -500,8 +610,7 @@ class IncrementalRecovery(ReactivatingWindow):
             P = P - C.T @ Y[:, :-1]
             bp = bp - C.T @ Y[:, -1]
             nz = np.flatnonzero(np.any(C != 0, axis=0))
-            self._conds.append(Conditional(mp, bq.copy(), C[:, nz], pa[nz], chol=chol, A=A))
-            self._owner[mp] = len(self._conds) - 1
+            self.conditionals.append(Conditional(mp, bq.copy(), C[:, nz], pa[nz], chol=chol, A=A))
             self.stats.marginalised_poses += len(mp) // POSE_DIM
         return P, bp
 

@@ -36,6 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import EstimatorError
+from .gauss_newton import gauss_newton
 from ..geometry.rotations import quat_log, quat_multiply, quat_conjugate, quat_exp, quat_normalize, quat_to_rotmat
 
 if TYPE_CHECKING:
@@ -156,8 +157,8 @@ def correct_loop(filt: "InformationFilter", j: int, k: int, p_k: Array, q_k: Arr
 
 
 def relinearise_all(filt: "InformationFilter", passes: int, tol: float = 1e-6) -> int:
-    """Gauss-Newton passes over every stored measurement from the (corrected) estimate:
-    each rebuilds ``I``, ``i`` at ``x`` (:meth:`~eifslam.estimation.filter.InformationFilter.relinearise`,
+    """Gauss-Newton passes (:func:`~eifslam.estimation.gauss_newton.gauss_newton`) over every
+    stored measurement from the (corrected) estimate: each rebuilds ``I``, ``i`` at ``x`` (:meth:`~eifslam.estimation.filter.InformationFilter.relinearise`,
     paper III-E) and solves the whole state (the last pass by
     :meth:`~eifslam.estimation.filter.InformationFilter.recover_rebuilt`: in incremental
     mode a rebuild of the recovery window, which the next frame then uses as it is).
@@ -181,21 +182,10 @@ def relinearise_all(filt: "InformationFilter", passes: int, tol: float = 1e-6) -
     int
         Passes kept.
     """
-    ref = 1.0 if filt.priors.scale is None else max(1.0, filt.priors.scale[2])
-    done = 0
-    for n in range(int(passes)):
-        before = filt.x.copy()
-        filt.relinearise()
-        try:
-            # the last pass through a rebuild of the recovery window, valid afterwards (no
-            # second rebuild at the next frame); the others by the full solve, which costs
-            # less than a rebuild that keeps a loop's old place in the window
-            filt.recover_rebuilt() if n == int(passes) - 1 else filt.recover()
-        except EstimatorError:
-            filt.x[:] = before
-            filt.relinearise()
-            break
-        done += 1
-        if float(np.max(np.abs(filt.x - before))) <= tol * ref:
-            break
-    return done
+    def solve(n: int) -> None:
+        # the last pass through a rebuild of the recovery window, valid afterwards (no
+        # second rebuild at the next frame); the others by the full solve, which costs
+        # less than a rebuild that keeps a loop's old place in the window
+        filt.recover_rebuilt() if n == int(passes) - 1 else filt.recover()
+
+    return gauss_newton(filt, passes, tol, solve)

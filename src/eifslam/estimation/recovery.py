@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from scipy.sparse.linalg import splu
 
 from ..errors import EstimatorError
+from .blocks import apply_blocks, block_diagonal_csr, cholesky_blocks, gather_diagonal_blocks, inverse_spd_blocks
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -71,11 +72,7 @@ class SchurFactor:
 
     def apply_dinv(self, v: Array) -> Array:
         """Apply the block-diagonal ``I_ff^-1`` to ``(F*3,)`` or ``(F*3, m)``."""
-        F = len(self.Dinv)
-        if v.ndim == 1:
-            return np.einsum("fij,fj->fi", self.Dinv, v.reshape(F, 3)).ravel()
-        m = v.shape[1]
-        return np.einsum("fij,fjm->fim", self.Dinv, v.reshape(F, 3, m)).reshape(F * 3, m)
+        return apply_blocks(self.Dinv, v)
 
     def solve(self, b: Array) -> Array:
         """Solve ``I x = b`` for ``b`` of shape ``(n,)`` or ``(n, m)``."""
@@ -110,10 +107,7 @@ class SchurFactor:
         C = sp.csr_matrix(C)
         k = C.shape[1]
         Cf, Cp = C[self.feat_idx], C[self.pose_idx]
-        F = len(self.Dinv)
-        rows = np.repeat(np.arange(F * 3), 3)
-        cols = (np.arange(F * 3)[:, None] // 3 * 3 + np.arange(3)).ravel()
-        Dsp = sp.csr_matrix((self.Dinv.reshape(F * 3, 3).ravel(), (rows, cols)), shape=(F * 3, F * 3))
+        Dsp = block_diagonal_csr(self.Dinv)
         DCf = sp.csr_matrix(Dsp @ Cf)
         Dbf = self.apply_dinv(np.asarray(b, float)[self.feat_idx])
         Rt = (sp.csr_matrix(Cp.T) - sp.csr_matrix(DCf.T) @ self.B).toarray()  # (k, 7P)
@@ -202,7 +196,7 @@ class SparseSolve:
         if self._Bc_T is not None:
             bc = np.zeros(len(self._fent))
             bc[self._frow] = r[self._rf]
-            Dbc = np.einsum("fij,fj->fi", self._Dinv_c, bc.reshape(-1, 3)).ravel()
+            Dbc = apply_blocks(self._Dinv_c, bc)
             rhs -= self._Bc_T @ Dbc
         xp = f.S_factor.solve(rhs) if len(f.pose_idx) else rhs
         xf = -f.apply_dinv(np.asarray(f.B @ xp))
@@ -251,11 +245,7 @@ def feature_blocks(I: sp.csr_matrix, feat_idx: IntArray, pose_idx: IntArray) -> 
     ppos[pose_idx] = np.arange(len(pose_idx))
     fc = fpos[col]
     isf = fc >= 0
-    same = isf & (fc // 3 == row // 3)
-    if np.any(isf & ~same & (val != 0)):
-        raise EstimatorError("two features share a measurement: the information matrix is not of SLAM form")
-    D = np.zeros((F, 3, 3))
-    D[row[same] // 3, row[same] % 3, fc[same] % 3] = val[same]
+    D = gather_diagonal_blocks(row[isf], fc[isf], val[isf], F)
     pc = ppos[col]
     isp = pc >= 0
     counts = np.bincount(row[isp], minlength=3 * F)
@@ -273,27 +263,9 @@ def gram_by_blocks(B: sp.csr_matrix, Dinv: Array) -> sp.csr_matrix:
     F = len(Dinv)
     Bb = sp.bsr_matrix(B, blocksize=(3, 7))
     brow = np.repeat(np.arange(F), np.diff(Bb.indptr))
-    try:
-        Lt = np.linalg.cholesky(Dinv).transpose(0, 2, 1)
-    except np.linalg.LinAlgError:
-        raise EstimatorError("a feature block is not positive definite (seen from one pose only?)") from None
+    Lt = cholesky_blocks(Dinv).transpose(0, 2, 1)
     Wb = sp.bsr_matrix((np.einsum("bij,bjk->bik", Lt[brow], Bb.data), Bb.indices, Bb.indptr), shape=B.shape)
     return (Wb.T @ Wb).tocsr()
-
-
-def inverse_blocks(D: Array) -> Array:
-    """Inverses ``(F, 3, 3)`` of the features' information blocks ``D (F, 3, 3)``.
-
-    Raises
-    ------
-    EstimatorError
-        When a block has no information (not positive definite).
-    """
-    det = np.linalg.det(D)
-    if np.any(~np.isfinite(det)) or np.any(det <= 0):
-        bad = int(np.argmax(~(det > 0)))
-        raise EstimatorError(f"feature block {bad} has no information (seen from one pose only?)")
-    return np.linalg.inv(D)
 
 
 def _marginal_by_solves(factor: SchurFactor, I: sp.csr_matrix, keep: IntArray, i: Array
@@ -343,9 +315,9 @@ def factorize_onto(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray, keep:
         return _marginal_by_solves(factorize(I, pose_idx, feat_idx), I, keep, i)
     ps = np.concatenate([pose_idx, keep])
     D, B = feature_blocks(I, feat_idx, ps)
-    Dinv = inverse_blocks(D)
+    Dinv = inverse_spd_blocks(D)
     i = np.asarray(i, float)
-    y = np.einsum("fij,fj->fi", Dinv, i[feat_idx].reshape(len(Dinv), 3)).ravel()
+    y = apply_blocks(Dinv, i[feat_idx])
     return reduced_onto(I, pose_idx, feat_idx, keep, i, Dinv, sp.csr_matrix(B[:, :nm]), gram_by_blocks(B, Dinv),
                         B.T @ y)
 
@@ -415,7 +387,7 @@ def factorize(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray) -> SchurFa
     F = len(feat_idx) // 3
     if F:
         D, B = feature_blocks(I, np.asarray(feat_idx, np.int64), np.asarray(pose_idx, np.int64))
-        Dinv = inverse_blocks(D)
+        Dinv = inverse_spd_blocks(D)
         S = I[pose_idx][:, pose_idx] - gram_by_blocks(B, Dinv)
     else:
         Dinv = np.zeros((0, 3, 3))

@@ -25,9 +25,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import EstimatorError, SessionError
+from .blocks import block_entries, dense_diagonal_blocks
 from .incremental import IncrementalRecovery, TrackedInformationStore
 from .information import InformationStore
 from .relinearisation import OnlineRelinearisation
+from .state import POSE_DIM
 
 if TYPE_CHECKING:  # the filter holds these objects; they only call its public methods
     from .filter import InformationFilter
@@ -145,16 +147,14 @@ class FullRecovery:
 
     def feature_covariances(self, filt: "InformationFilter", cols: IntArray) -> Array:
         full = filt.factor().covariance(np.asarray(cols, np.int64).reshape(-1, 3).ravel())
-        F = len(full) // 3
-        return np.stack([full[3 * n:3 * n + 3, 3 * n:3 * n + 3] for n in range(F)]) if F else np.zeros((0, 3, 3))
+        return dense_diagonal_blocks(full)
 
     def propagate(self, filt: "InformationFilter", pose_starts: IntArray, starts: IntArray,
                   G: Array) -> Array | None:
         factor = filt.cached_factor()
         if factor is None:  # not cheap: only poses need it
             return None if len(pose_starts) else np.zeros((G.shape[0], G.shape[0]))
-        cols = np.concatenate([(np.asarray(pose_starts, np.int64)[:, None] + np.arange(7)).ravel(),
-                               (np.asarray(starts, np.int64)[:, None] + np.arange(3)).ravel()])
+        cols = np.concatenate([block_entries(pose_starts, POSE_DIM), block_entries(starts)])
         return G @ factor.covariance(cols) @ G.T
 
     def state_dict(self) -> dict | None:

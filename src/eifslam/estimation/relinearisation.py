@@ -48,6 +48,7 @@ from numpy.typing import NDArray
 
 from ..errors import ConfigError
 from . import factors
+from .gauss_newton import information_terms
 from .measurements import (FeatureObservations, RelativePose, pack_features, pack_relative, unpack_features,
                            unpack_relative)
 from .statedict import check_index, sub, take, take_int
@@ -132,8 +133,7 @@ def _rank(err2: Array, last: NDArray[np.bool_], t2: float) -> Array:
 def contribution(idx: IntArray, J: Array, W: Array, innov: Array, x0: Array) -> tuple[Array, Array]:
     """``(J^T W J (N, k, k), J^T W (innov + J x0) (N, k))``: eq. 8's terms of ``N``
     measurements linearised at their own points ``x0 (N, k)``."""
-    JtW = np.swapaxes(J, 1, 2) @ W
-    return JtW @ J, np.einsum("nkm,nm->nk", JtW, innov + np.einsum("nmk,nk->nm", J, x0))
+    return information_terms(J, W, innov + np.einsum("nmk,nk->nm", J, x0))
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """The active window's pose Schur complement by blocks of its staircase (pure NumPy/SciPy).
 
-The window solve (:meth:`~eifslam.estimation.window.ActiveWindow._solve`) needs
+The window solve (:meth:`~eifslam.estimation.window.ActiveWindow.solve`) needs
 ``S = P - W^T W`` with ``W = L^-1 B`` (``D_f = L_f L_f^T`` per feature): ``B`` is
 ``3 f x 7 p`` and dense in memory, but a feature is coupled only to the poses that
 observed it while it was active. With the poses in the order they entered the state

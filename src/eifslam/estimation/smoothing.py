@@ -18,6 +18,7 @@ import scipy.sparse as sp
 
 from ..errors import EstimatorError
 from .filter import InformationFilter
+from .gauss_newton import begin_pass, state_scale
 from .measurements import FeatureObservations, RelativePose
 from .noise import FeatureGate, residual_noise_scale, track_length_noise  # noqa: F401  (re-exported)
 from .options import NoiseEstimate
@@ -412,14 +413,14 @@ def _passes(filt: InformationFilter, max_passes: int, tol: float, rep: Smoothing
     part rises, and counts ``Zm`` the information leaves out). Both costs at one estimate
     come from one linearisation (:class:`_Costs`), which the next pass reuses as its
     starting cost: ``x`` does not change between them."""
-    ref = 1.0 if filt.priors.scale is None else max(1.0, filt.priors.scale[2])
+    ref = state_scale(filt)
     here = _Costs.at(filt)
     rep.costs.append(here.measurement())
     rep.converged = rep.stopped_by_cost = False
     lam = 0.0
     for _ in range(max_passes):
-        before = filt.x.copy()
-        fused = relinearise(filt)
+        p = begin_pass(filt)
+        before, fused = p.before, p.fused
         cost = here.model(fused)
         while True:
             try:
@@ -448,7 +449,7 @@ def _passes(filt: InformationFilter, max_passes: int, tol: float, rep: Smoothing
         # pass made the next undamped step fail again on kitti-07 (two factorisations a pass)
         lam = lam / 10.0 if lam >= 10.0 * LAM_MIN else 0.0
         rep.costs.append(here.measurement())
-        norm = float(np.max(np.abs(filt.x - before))) if filt.dim else 0.0
+        norm = p.change(filt)
         rep.step_norms.append(norm)
         small = cost - new_cost <= cost_tol * cost
         if norm <= tol * ref or (lam == 0.0 and small):

@@ -1,4 +1,4 @@
-"""The active window of incremental recovery and the conditionals of what left it.
+"""The active window of incremental recovery: the marginal information of the active states.
 
 :class:`ActiveWindow` holds the *marginal* information of the active states in the
 structure of the reduced camera system (see :mod:`eifslam.estimation.incremental`):
@@ -7,18 +7,18 @@ structure of the reduced camera system (see :mod:`eifslam.estimation.incremental
 * active features: 3x3 blocks ``D`` and vector ``bf``, coupled to the active poses by
   ``B`` (``3 f x 7 p``).
 
-It adds fused blocks into the window (:meth:`ActiveWindow._route`), solves it exactly
-(:meth:`ActiveWindow._solve`), eliminates stale states into conditionals
-(:meth:`ActiveWindow._marginalise`) and back-substitutes the conditionals
-(:meth:`ActiveWindow.full_solution`); undoing eliminations when a measurement touches an
-eliminated state is :mod:`eifslam.estimation.reactivation`'s. When and what to do is decided by
-the driver, :class:`~eifslam.estimation.incremental.IncrementalRecovery`, which
-subclasses it. Pure NumPy/SciPy.
+It adds fused blocks (:meth:`ActiveWindow.add`), solves itself exactly
+(:meth:`ActiveWindow.solve`), eliminates the states it is told are stale into
+conditionals it hands back (:meth:`ActiveWindow.eliminate_features`,
+:meth:`ActiveWindow.eliminate_poses`), takes eliminated states back
+(:meth:`ActiveWindow.restore_features`, :meth:`ActiveWindow.restore_poses`, used by
+:mod:`eifslam.estimation.reactivation`) and answers marginal covariances of its states
+from its last solve. It decides nothing: when and what is done is decided by
+:class:`~eifslam.estimation.incremental.IncrementalRecovery`, which owns the window and
+the conditionals (:class:`~eifslam.estimation.backsub.Conditionals`). Pure NumPy/SciPy.
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -26,49 +26,13 @@ from numpy.typing import NDArray
 from scipy.linalg import cho_factor, cho_solve, solve
 
 from ..errors import EstimatorError
-from .backsub import BackSubstitution, Conditional
+from .backsub import Conditional
+from .blocks import apply_blocks, cholesky_blocks, pose_cholesky
 from .schur import coupled_poses, subtract_gram
 from .state import FEATURE_DIM, POSE_DIM
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
-
-
-@dataclass
-class RecoveryStats:
-    """Counters of :class:`IncrementalRecovery`.
-
-    Attributes
-    ----------
-    steps : recoveries done.
-    fallbacks : steps where a measurement touched a marginalised state that could not be
-        re-activated (full rebuild), plus solves that failed (see
-        :meth:`eifslam.estimation.filter.InformationFilter.recover_active`).
-    rebuilds : full rebuilds for any reason (fallbacks, ``I`` reset/set, first use).
-    reactivations : steps where a measurement touched marginalised states and they were
-        re-activated (their conditionals undone, no rebuild).
-    reactivated_poses, reactivated_features : states brought back into the window so far
-        (the touched ones and the later-eliminated poses they were conditioned on).
-    marginalised_poses, marginalised_features : states eliminated so far (re-eliminations
-        included).
-    window_poses, window_features : size of the active window after the last step.
-    max_window_poses : largest number of active poses solved in one step.
-    indefinite_solves : steps whose pose Schur complement was numerically indefinite
-        (solved by ``LDL^T`` instead of Cholesky; see :meth:`IncrementalRecovery._solve`).
-    """
-
-    steps: int = 0
-    fallbacks: int = 0
-    rebuilds: int = 0
-    reactivations: int = 0
-    reactivated_poses: int = 0
-    reactivated_features: int = 0
-    marginalised_poses: int = 0
-    marginalised_features: int = 0
-    window_poses: int = 0
-    window_features: int = 0
-    max_window_poses: int = 0
-    indefinite_solves: int = 0
 
 
 def _scatter_add(A: Array, flat: IntArray, v: Array) -> None:
@@ -79,37 +43,13 @@ def _scatter_add(A: Array, flat: IntArray, v: Array) -> None:
         A[np.unravel_index(u, A.shape)] += np.bincount(inv.ravel(), v, minlength=len(u))  # u unique
 
 
-def _cholesky_3x3(D: Array) -> Array:
-    """Lower Cholesky factors of ``(F, 3, 3)`` blocks; raises if a block is not positive definite."""
-    try:
-        return np.linalg.cholesky(D)
-    except np.linalg.LinAlgError:
-        raise EstimatorError("a feature has no information in some direction (seen from one pose only?)") from None
-
-
-def pose_cholesky(A: Array) -> tuple[Array, bool]:
-    """``cho_factor(A, lower=True)`` of the information of poses being eliminated; raises
-    :class:`EstimatorError` when ``A`` is numerically indefinite (``I`` too ill-conditioned
-    for a Cholesky factorisation), so that the caller falls back to a full sparse solve
-    instead of stopping the run."""
-    try:
-        return cho_factor(A, lower=True, check_finite=False)
-    except np.linalg.LinAlgError:
-        raise EstimatorError(f"the information of {len(A) // POSE_DIM} pose(s) to eliminate is numerically "
-                             "indefinite") from None
-
-
-def spd_inverse_3x3(D: Array) -> Array:
-    """Inverses of ``(F, 3, 3)`` blocks; raises if a block is not positive definite."""
-    try:
-        np.linalg.cholesky(D)
-    except np.linalg.LinAlgError:
-        raise EstimatorError("a feature has no information in some direction (seen from one pose only?)") from None
-    return np.linalg.inv(D)
-
-
 class ActiveWindow:
-    """The active window's marginal information and the conditionals of eliminated states.
+    """The marginal information of the active states and its last solve.
+
+    Parameters
+    ----------
+    n : int
+        Entries of the state so far (the length of :attr:`pos`).
 
     Attributes
     ----------
@@ -123,44 +63,53 @@ class ActiveWindow:
         Feature-pose coupling.
     xp, xf : (7 p,), (3 f,)
         The last solution of the window.
-
-    The driver sets, before use: ``feature_window``, ``pose_window`` (int), ``stats``
-    (:class:`RecoveryStats`), ``_map`` (an ``EntryMap``: per-entry kind and block start),
-    ``_last`` (step of the last measurement of each block), ``_pos`` (window position
-    of each entry, ``-1`` when eliminated), ``_owner`` (slot in ``_conds`` of each
-    eliminated entry, else ``-1``) and ``_conds`` (conditionals in elimination order,
-    ``None`` once undone).
+    pos : (n,) int64
+        Position of each state entry in ``pidx`` or ``fidx``, -1 when not active.
     """
 
-    feature_window: int
-    pose_window: int
-    stats: RecoveryStats
-
-    @staticmethod
-    def empty_window() -> dict:
-        """The fields of an empty window (no active state, nothing solved)."""
-        return dict(pidx=np.zeros(0, np.int64), fidx=np.zeros(0, np.int64), P=np.zeros((0, 0)), bp=np.zeros(0),
-                    D=np.zeros((0, 3, 3)), bf=np.zeros(0), B=np.zeros((0, 0)), xp=np.zeros(0), xf=np.zeros(0),
-                    _S_cho=None, _S_pidx=np.zeros(0, np.int64), _S_fidx=np.zeros(0, np.int64),
-                    _Dinv=np.zeros((0, 3, 3)), _DB=np.zeros((0, 0)), _W=np.zeros((0, 0)),
-                    _coupled=np.zeros((0, 0), bool), _W_of=None)
-
-    def _reset_window(self) -> None:
-        self.__dict__.update(self.empty_window())
+    def __init__(self, n: int = 0) -> None:
+        self.pidx, self.fidx = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        self.P, self.bp = np.zeros((0, 0)), np.zeros(0)
+        self.D, self.bf, self.B = np.zeros((0, 3, 3)), np.zeros(0), np.zeros((0, 0))
+        self.xp, self.xf = np.zeros(0), np.zeros(0)
+        self.pos = np.full(n, -1, np.int64)
+        # the last solve: pose Schur complement's factor, the states it was of, D^-1,
+        # D^-1 B, W = L^-1 B (D = L L^T), the poses each feature is coupled to, and the
+        # coupling W was made of (eliminate_features reuses W while B is unchanged)
+        self._S_cho: tuple | None = None
+        self._S_pidx, self._S_fidx = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        self._Dinv, self._DB, self._W = np.zeros((0, 3, 3)), np.zeros((0, 0)), np.zeros((0, 0))
+        self._coupled = np.zeros((0, 0), bool)
+        self._W_of: Array | None = None
 
     @property
     def active_indices(self) -> IntArray:
         """State indices of the active window (poses then features)."""
         return np.concatenate([self.pidx, self.fidx])
 
+    @property
+    def solved(self) -> bool:
+        """Whether ``xp``, ``xf`` are of the window's current states (no state joined or
+        came back since the last :meth:`solve`)."""
+        return len(self.xp) == len(self.pidx) and len(self.xf) == len(self.fidx)
+
+    def grow(self, n: int) -> None:
+        """The state has ``n`` entries now (the new ones are not active)."""
+        self.pos = np.concatenate([self.pos, np.full(n - len(self.pos), -1, np.int64)])
+
+    def write_solution(self, x: Array) -> None:
+        """Write the last solution into the active entries of ``x`` (in place)."""
+        x[self.pidx], x[self.fidx] = self.xp, self.xf
+
+    # -- marginal covariances from the last solve --------------------------------------------
     def pose_covariance(self, cols: IntArray) -> Array | None:
         """Marginal covariance of active pose entries ``cols`` (k,) from the window.
 
         The window holds the exact marginal information of its states, so the block of
         the inverse of its pose Schur complement is the exact marginal covariance.
-        Returns None when an entry is not an active pose or the window is stale.
+        Returns None when an entry is not a pose of the last solve.
         """
-        if not self._valid or getattr(self, "_S_cho", None) is None:
+        if self._S_cho is None:
             return None
         where = {int(v): i for i, v in enumerate(self._S_pidx)}  # the window as solved
         pos = [where.get(int(c), -1) for c in cols]
@@ -176,7 +125,7 @@ class ActiveWindow:
 
         ``D_f^-1 + (D^-1 B)_f S^-1 (D^-1 B)_f^T`` (``S`` the pose Schur complement): the
         window holds the exact marginal information of its states, so this is the
-        feature's exact marginal covariance as of the last :meth:`_solve` (before what
+        feature's exact marginal covariance as of the last :meth:`solve` (before what
         was fused since).
 
         Parameters
@@ -188,12 +137,12 @@ class ActiveWindow:
         -------
         (F, 3, 3) float
             Covariances (state units squared); NaN for a feature that was not active at
-            the last solve (or when the window is stale).
+            the last solve.
         """
         starts = np.asarray(starts, np.int64).reshape(-1)
         out = np.full((len(starts), 3, 3), np.nan)
-        fidx = getattr(self, "_S_fidx", np.zeros(0, np.int64))
-        if not self._valid or len(fidx) == 0 or len(self._Dinv) != len(fidx) // 3:
+        fidx = self._S_fidx
+        if len(fidx) == 0 or len(self._Dinv) != len(fidx) // 3:
             return out
         where = {int(v): i for i, v in enumerate(fidx[::3])}
         blk = np.array([where.get(int(c), -1) for c in starts], np.int64)
@@ -209,24 +158,6 @@ class ActiveWindow:
         out[sel] = 0.5 * (C + C.transpose(0, 2, 1))
         return out
 
-    def feature_propagate(self, starts: IntArray, G: Array) -> Array:
-        """``G P G^T`` for the joint marginal covariance ``P`` of features, from the window
-        as last solved, without forming ``P`` (:meth:`propagate` without poses).
-
-        Parameters
-        ----------
-        starts : (F,) int
-            State index of each feature's first entry (distinct).
-        G : (k, 3 F) float
-            A linear map of the features' errors (3 columns per feature, in order).
-
-        Returns
-        -------
-        (k, k) float
-        """
-        out = self.propagate(np.zeros(0, np.int64), starts, G)
-        return np.zeros((G.shape[0], G.shape[0])) if out is None else out
-
     def propagate(self, pose_starts: IntArray, starts: IntArray, G: Array) -> Array | None:
         """``G P G^T`` for the joint marginal covariance ``P`` of active poses and
         features, from the window as last solved, without forming ``P``.
@@ -235,7 +166,7 @@ class ActiveWindow:
         B^T D^-1 B``, the covariance is ``S^-1`` over the poses, ``-D^-1 B S^-1`` between
         features and poses and ``D^-1 + D^-1 B S^-1 B^T D^-1`` over the features, so ``G P
         G^T = sum_f G_f D_f^-1 G_f^T + H S^-1 H^T`` with ``H = G_p - G_f D^-1 B``: ``O(F)``.
-        Features that were not active at the last :meth:`_solve` count as exact (zero
+        Features that were not active at the last :meth:`solve` count as exact (zero
         covariance, no correlation).
 
         Parameters
@@ -250,8 +181,7 @@ class ActiveWindow:
 
         Returns
         -------
-        (k, k) float, or None when a pose was not active at the last solve (or the window
-        is stale and poses were asked for).
+        (k, k) float, or None when a pose was not active at the last solve.
         """
         pose_starts = np.asarray(pose_starts, np.int64).reshape(-1)
         starts = np.asarray(starts, np.int64).reshape(-1)
@@ -261,15 +191,15 @@ class ActiveWindow:
         npw = len(self._S_pidx)
         H = np.zeros((k, npw))
         if len(pose_starts):
-            if not self._valid or self._S_cho is None:
+            if self._S_cho is None:
                 return None
             where_p = {int(v): i for i, v in enumerate(self._S_pidx)}
             pos = [where_p.get(int(c), -1) for c in (pose_starts[:, None] + np.arange(POSE_DIM)).ravel()]
             if min(pos) < 0:
                 return None
             np.add.at(H.T, np.asarray(pos), G[:, :n_p].T)
-        fidx = getattr(self, "_S_fidx", np.zeros(0, np.int64))
-        if self._valid and len(fidx) and len(self._Dinv) == len(fidx) // 3 and len(starts):
+        fidx = self._S_fidx
+        if len(fidx) and len(self._Dinv) == len(fidx) // 3 and len(starts):
             where = {int(v): i for i, v in enumerate(fidx[::3])}
             blk = np.array([where.get(int(c), -1) for c in starts], np.int64)
             have = blk >= 0
@@ -284,38 +214,20 @@ class ActiveWindow:
             out += H @ cho_solve(self._S_cho, H.T)
         return 0.5 * (out + out.T)
 
-    def recent_solution(self, x: Array, slots: int) -> Array:
-        """:meth:`full_solution` for the states of the last ``slots`` conditionals only
-        (about two a step: one feature batch, one pose batch), exact for those; older
-        marginalised states keep the values ``x`` has. The cost is bounded by ``slots``,
-        not by the size of the state."""
-        if len(self.xp) != len(self.pidx) or len(self.xf) != len(self.fidx):
-            return x
-        x[self.pidx], x[self.fidx] = self.xp, self.xf
-        backsub = self.__dict__.get("_backsub")
-        if backsub is None:
-            backsub = self._backsub = BackSubstitution()
-        return backsub.apply(self._conds, x, start=len(self._conds) - int(slots))
+    # -- what joins the window -----------------------------------------------------------------
+    def reset_to(self, pidx: IntArray, fidx: IntArray, P: Array, bp: Array, D: Array, B: Array,
+                 bf: Array) -> None:
+        """Make the window the states ``pidx``, ``fidx`` with the given marginal
+        information (a rebuild); the last solve is kept until the next :meth:`solve`."""
+        self.pos[:] = -1
+        self.pidx, self.fidx = pidx, fidx
+        self.pos[pidx] = np.arange(len(pidx))
+        self.pos[fidx] = np.arange(len(fidx))
+        self.P, self.bp = 0.5 * (P + P.T), bp
+        self.D, self.B, self.bf = D, B, bf
 
-    def full_solution(self, x: Array) -> Array:
-        """Back-substitute every marginalised state into ``x`` (in place) in ``O(n)``
-        (:class:`~eifslam.estimation.backsub.BackSubstitution`: the poses newest first,
-        then the features in merged chunks).
-
-        ``x`` must hold the current window solution (as :meth:`step` left it); entries
-        added to the layout after the last step are left untouched.
-        """
-        if len(self.xp) != len(self.pidx) or len(self.xf) != len(self.fidx):
-            return x  # the window changed without a solve: nothing consistent to add
-        x[self.pidx], x[self.fidx] = self.xp, self.xf
-        backsub = self.__dict__.get("_backsub")
-        if backsub is None:
-            backsub = self._backsub = BackSubstitution()
-        return backsub.apply(self._conds, x)
-
-    # -- window maintenance -------------------------------------------------------------
-    def _append(self, new: list[tuple[bool, int]]) -> None:
-        """New states join the window with zero information."""
+    def append(self, new: list[tuple[bool, int]]) -> None:
+        """New states ``(is_feature, offset)`` join the window with zero information."""
         if not new:
             return
         pn = np.concatenate([np.arange(o, o + POSE_DIM) for f, o in new if not f] or [np.zeros(0, np.int64)])
@@ -333,51 +245,105 @@ class ActiveWindow:
         B = np.zeros((f1, p1))
         B[:f0, :p0] = self.B
         self.B = B
-        self._pos[pn] = np.arange(p0, p1)
-        self._pos[fn] = np.arange(f0, f1)
+        self.pos[pn] = np.arange(p0, p1)
+        self.pos[fn] = np.arange(f0, f1)
 
-    def _route(self, idx: IntArray, Lam: Array, eta: Array) -> None:
-        """Add ``N`` blocks ``(idx (N,k), Lam (N,k,k), eta (N,k))`` into the window."""
+    def add(self, idx: IntArray, Lam: Array, eta: Array, is_feature: NDArray[np.bool_], start: IntArray) -> None:
+        """Add ``N`` blocks ``(idx (N,k), Lam (N,k,k), eta (N,k))`` of active states into the
+        window; ``is_feature`` and ``start`` give each state entry's kind and block start.
+
+        Raises
+        ------
+        EstimatorError
+            When a block couples two features (``I`` not of SLAM form).
+        """
         k = idx.shape[1]
         r = np.repeat(idx, k, axis=1).ravel()
         c = np.tile(idx, (1, k)).ravel()
         v = Lam.ravel()
-        isf = self._map.is_feature
+        isf = is_feature
         fr, fc = isf[r], isf[c]
-        pr, pc = self._pos[r], self._pos[c]
+        pr, pc = self.pos[r], self.pos[c]
         m = ~fr & ~fc
         _scatter_add(self.P, pr[m] * self.P.shape[1] + pc[m], v[m])
         m = fr & ~fc
         _scatter_add(self.B, pr[m] * self.B.shape[1] + pc[m], v[m])
         m = fr & fc
-        if np.any(self._map.start[r[m]] != self._map.start[c[m]]):
+        if np.any(start[r[m]] != start[c[m]]):
             raise EstimatorError("two features share a measurement: the information matrix is not of SLAM form")
         _scatter_add(self.D, 3 * pr[m] + pc[m] % 3, v[m])  # D[f, a, c] at 9 f + 3 a + c
         e, ev = idx.ravel(), eta.ravel()
         fe = isf[e]
-        self.bp += np.bincount(self._pos[e[~fe]], ev[~fe], minlength=len(self.bp))
-        self.bf += np.bincount(self._pos[e[fe]], ev[fe], minlength=len(self.bf))
+        self.bp += np.bincount(self.pos[e[~fe]], ev[~fe], minlength=len(self.bp))
+        self.bf += np.bincount(self.pos[e[fe]], ev[fe], minlength=len(self.bf))
 
-    def _solve(self) -> None:
-        """``x`` of the window: Schur complement onto the poses, dense Cholesky.
+    def restore_poses(self, idx: IntArray, sep: IntArray, dK: Array, db: Array, A: Array, C: Array,
+                      b: Array) -> None:
+        """Eliminated poses ``idx`` come back with information ``A`` (``(q, q)``), coupling
+        ``C`` (``(q, len(sep))``) to the active poses at window positions ``sep`` and vector
+        ``b``; the ``sep`` block of the window gets ``dK``, ``db`` back (what their
+        elimination had subtracted)."""
+        nq = len(idx)
+        p0 = len(self.pidx)
+        P = np.zeros((p0 + nq, p0 + nq))
+        P[:p0, :p0] = self.P
+        P[np.ix_(sep, sep)] += dK
+        P[p0:, p0:] = A
+        P[p0:, sep] = C
+        P[sep, p0:] = C.T
+        bp = np.concatenate([self.bp, b])
+        bp[sep] += db
+        self.P, self.bp = 0.5 * (P + P.T), bp
+        self.B = np.concatenate([self.B, np.zeros((len(self.fidx), nq))], axis=1)
+        self.pidx = np.concatenate([self.pidx, idx])
+        self.pos[idx] = np.arange(p0, p0 + nq)
+
+    def restore_features(self, idx: IntArray, sep: IntArray, dK: Array, db: Array, D: Array, C: Array,
+                         b: Array) -> None:
+        """Eliminated features ``idx`` (``3 g`` entries) come back with 3x3 blocks ``D``
+        (``(g, 3, 3)``), coupling ``C`` (``(3 g, len(sep))``) to the active poses at window
+        positions ``sep`` and vector ``b``; the ``sep`` block of the window gets ``dK``,
+        ``db`` back."""
+        self.P[np.ix_(sep, sep)] += dK
+        self.P = 0.5 * (self.P + self.P.T)
+        self.bp[sep] += db
+        Bn = np.zeros((len(idx), len(self.pidx)))
+        Bn[:, sep] = C
+        f0 = len(self.fidx)
+        self.B = np.concatenate([self.B, Bn])
+        self.D = np.concatenate([self.D, D])
+        self.bf = np.concatenate([self.bf, b])
+        self.fidx = np.concatenate([self.fidx, idx])
+        self.pos[idx] = np.arange(f0, f0 + len(idx))
+
+    # -- solve and eliminate -------------------------------------------------------------------
+    def solve(self) -> bool:
+        """Solve the window into ``xp``, ``xf``: Schur complement onto the poses, dense
+        Cholesky. Returns whether the pose Schur complement was numerically indefinite.
 
         When the Cholesky factorisation fails (the pose Schur complement is numerically
         indefinite: ``I`` itself is then too ill-conditioned for any Cholesky, the full
         sparse solve meets negative pivots as well), the same system is solved by a
-        symmetric indefinite factorisation (Bunch-Kaufman ``LDL^T``) and the event is
-        counted in :attr:`RecoveryStats.indefinite_solves`. The window stays valid: it is
-        the exact marginal information of its states, rebuilding it would give the same
-        matrix.
+        symmetric indefinite factorisation (Bunch-Kaufman ``LDL^T``) and True is returned.
+        The window stays valid: it is the exact marginal information of its states,
+        rebuilding it would give the same matrix.
+
+        Raises
+        ------
+        EstimatorError
+            When a feature block is not positive definite, the system is singular or the
+            solution is not finite.
         """
         F, npw = len(self.D), len(self.pidx)
-        Linv = np.linalg.inv(_cholesky_3x3(self.D)) if F else np.zeros((0, 3, 3))  # D_f = L L^T
+        Linv = np.linalg.inv(cholesky_blocks(self.D)) if F else np.zeros((0, 3, 3))  # D_f = L L^T
         self._Dinv = Linv.transpose(0, 2, 1) @ Linv
         B3 = self.B.reshape(F, 3, npw)
         self._DB = (self._Dinv @ B3).reshape(3 * F, npw)
-        Dbf = np.einsum("fij,fj->fi", self._Dinv, self.bf.reshape(F, 3)).ravel()
+        Dbf = apply_blocks(self._Dinv, self.bf)
         r = self.bp - self.B.T @ Dbf
         self._S_cho, self._S_pidx, self._S_fidx = None, self.pidx.copy(), self.fidx.copy()
         self._W, self._coupled, self._W_of = np.zeros((0, npw)), np.zeros((0, npw // POSE_DIM), bool), None
+        indefinite = False
         if npw:
             # S = P - B^T D^-1 B = P - W^T W with W = L^-1 B, lower triangle only, by
             # chunks of the staircase of B (a feature is coupled to the few poses that
@@ -386,7 +352,7 @@ class ActiveWindow:
             S = self.P.copy()
             if F:
                 self._W, self._coupled = W, coupled_poses(self.B, npw // POSE_DIM)
-                self._W_of = self.B  # the coupling W was made of (_marginalise reuses it)
+                self._W_of = self.B  # the coupling W was made of (eliminate_features reuses it)
                 subtract_gram(S, W, self._coupled)
             try:
                 self._S_cho = cho_factor(S, lower=True, check_finite=False)
@@ -396,60 +362,72 @@ class ActiveWindow:
                     xp = solve(S, r, assume_a="sym", lower=True, check_finite=False)
                 except np.linalg.LinAlgError:
                     raise EstimatorError("information matrix is singular; is the gauge fixed?") from None
-                self.stats.indefinite_solves += 1
+                indefinite = True
         else:
             xp = r
-        xf = Dbf - np.einsum("fij,fj->fi", self._Dinv, (self.B @ xp).reshape(F, 3)).ravel()
+        xf = Dbf - apply_blocks(self._Dinv, self.B @ xp)
         if not (np.all(np.isfinite(xp)) and np.all(np.isfinite(xf))):
             raise EstimatorError("state recovery produced non-finite values")
         self.xp, self.xf = xp, xf
+        return indefinite
 
-    def _marginalise(self, s: int) -> None:
-        """Eliminate stale features, then stale poses no active feature is coupled to."""
-        last = self._last
-        fstale = (s - last[self.fidx[::3]]) >= self.feature_window
-        if np.any(fstale):
-            rows = np.repeat(fstale, 3)
-            Bm = self.B[rows]
-            if self._W_of is self.B and self._W.shape == self.B.shape:
-                # P -= Bm^T D^-1 Bm = W_m^T W_m, by the staircase (B as solved)
-                subtract_gram(self.P, self._W[rows], self._coupled[fstale], lower=False)
-            else:
-                self.P -= Bm.T @ self._DB[rows]
-            Dinv_m = self._Dinv[fstale]
-            self.bp -= Bm.T @ np.einsum("fij,fj->fi", Dinv_m, self.bf[rows].reshape(-1, 3)).ravel()
-            nz = np.flatnonzero(np.any(Bm != 0, axis=0))
-            # CSR: a feature is coupled to the few poses that saw it, not to every pose
-            # the batch's features saw (dense, the batch's C was ~80% zeros on the loop world)
-            self._conds.append(Conditional(self.fidx[rows], self.bf[rows], sp.csr_matrix(Bm[:, nz]), self.pidx[nz],
-                                            Dinv=Dinv_m, A=self.D[fstale]))
-            self._owner[self.fidx[rows]] = len(self._conds) - 1
-            self._pos[self.fidx[rows]] = -1
-            keep = ~rows
-            self.B, self.bf, self.fidx = self.B[keep], self.bf[keep], self.fidx[keep]
-            self.D, self.xf = self.D[~fstale], self.xf[keep]
-            self._pos[self.fidx] = np.arange(len(self.fidx))
-            self.stats.marginalised_features += int(fstale.sum())
-        pblk = self.pidx[::POSE_DIM]
-        coupled = np.any(self.B != 0, axis=0).reshape(-1, POSE_DIM).any(axis=1)
-        pstale = ((s - last[pblk]) >= self.pose_window) & ~coupled
-        if np.any(pstale):
-            q = np.repeat(pstale, POSE_DIM)
-            k = ~q
-            Pqq, Pqk = self.P[np.ix_(q, q)], self.P[np.ix_(q, k)]
-            bq = self.bp[q]
-            chol = pose_cholesky(Pqq)  # Pqq is a copy (fancy indexing)
-            self.P = self.P[np.ix_(k, k)] - Pqk.T @ cho_solve(chol, Pqk)
-            self.bp = self.bp[k] - Pqk.T @ cho_solve(chol, bq)
-            nz = np.flatnonzero(np.any(Pqk != 0, axis=0))
-            kidx = self.pidx[k]
-            self._conds.append(Conditional(self.pidx[q], bq, Pqk[:, nz], kidx[nz], chol=chol, A=Pqq))
-            self._owner[self.pidx[q]] = len(self._conds) - 1
-            self._pos[self.pidx[q]] = -1
-            self.pidx, self.xp, self.B = kidx, self.xp[k], self.B[:, k]
-            self._pos[self.pidx] = np.arange(len(self.pidx))
-            self.stats.marginalised_poses += int(pstale.sum())
-        self.P = 0.5 * (self.P + self.P.T)  # keep the rounding of the Schur updates symmetric
+    def eliminate_features(self, stale: NDArray[np.bool_]) -> Conditional:
+        """Eliminate the active features ``stale`` (``(f,)`` bool, at least one):
+        ``P -= B_s^T D_s^-1 B_s`` (fill only among poses); returns their conditional.
+        Uses the last :meth:`solve`'s ``D^-1`` (call right after it)."""
+        rows = np.repeat(stale, 3)
+        Bm = self.B[rows]
+        if self._W_of is self.B and self._W.shape == self.B.shape:
+            # P -= Bm^T D^-1 Bm = W_m^T W_m, by the staircase (B as solved)
+            subtract_gram(self.P, self._W[rows], self._coupled[stale], lower=False)
+        else:
+            self.P -= Bm.T @ self._DB[rows]
+        Dinv_m = self._Dinv[stale]
+        self.bp -= Bm.T @ apply_blocks(Dinv_m, self.bf[rows])
+        nz = np.flatnonzero(np.any(Bm != 0, axis=0))
+        # CSR: a feature is coupled to the few poses that saw it, not to every pose
+        # the batch's features saw (dense, the batch's C was ~80% zeros on the loop world)
+        cond = Conditional(self.fidx[rows], self.bf[rows], sp.csr_matrix(Bm[:, nz]), self.pidx[nz],
+                           Dinv=Dinv_m, A=self.D[stale])
+        self.pos[self.fidx[rows]] = -1
+        keep = ~rows
+        self.B, self.bf, self.fidx = self.B[keep], self.bf[keep], self.fidx[keep]
+        self.D, self.xf = self.D[~stale], self.xf[keep]
+        self.pos[self.fidx] = np.arange(len(self.fidx))
+        return cond
+
+    def coupled_poses(self) -> NDArray[np.bool_]:
+        """(p,) bool: whether each active pose is coupled to an active feature."""
+        return np.any(self.B != 0, axis=0).reshape(-1, POSE_DIM).any(axis=1)
+
+    def eliminate_poses(self, stale: NDArray[np.bool_]) -> Conditional:
+        """Eliminate the active poses ``stale`` (``(p,)`` bool, at least one, coupled to no
+        active feature): ``P -= P_kq P_qq^-1 P_qk`` (fill only among poses); returns their
+        conditional.
+
+        Raises
+        ------
+        EstimatorError
+            When ``P_qq`` is numerically indefinite.
+        """
+        q = np.repeat(stale, POSE_DIM)
+        k = ~q
+        Pqq, Pqk = self.P[np.ix_(q, q)], self.P[np.ix_(q, k)]
+        bq = self.bp[q]
+        chol = pose_cholesky(Pqq)  # Pqq is a copy (fancy indexing)
+        self.P = self.P[np.ix_(k, k)] - Pqk.T @ cho_solve(chol, Pqk)
+        self.bp = self.bp[k] - Pqk.T @ cho_solve(chol, bq)
+        nz = np.flatnonzero(np.any(Pqk != 0, axis=0))
+        kidx = self.pidx[k]
+        cond = Conditional(self.pidx[q], bq, Pqk[:, nz], kidx[nz], chol=chol, A=Pqq)
+        self.pos[self.pidx[q]] = -1
+        self.pidx, self.xp, self.B = kidx, self.xp[k], self.B[:, k]
+        self.pos[self.pidx] = np.arange(len(self.pidx))
+        return cond
+
+    def symmetrise(self) -> None:
+        """Keep the rounding of the Schur updates of ``P`` symmetric."""
+        self.P = 0.5 * (self.P + self.P.T)
 
 
-__all__ = ["ActiveWindow", "RecoveryStats", "pose_cholesky"]
+__all__ = ["ActiveWindow"]
