@@ -253,8 +253,7 @@ class InformationFilter:
 
         Returns
         -------
-        ok : (N,) bool, usable (predicted depth above ``min_depth``, finite, and with ``gate``
-        inside ``gate_chi2`` against the innovation covariance, :meth:`innovation_chi2`).
+        ok : (N,) bool, usable (predicted depth above ``min_depth``, finite, inside the gate).
         idx : (N, 10) state indices ``[pose 7, feature 3]``; J : (N, 2, 10);
         W : (N, 2, 2) information; innov : (N, 2) ``z - h(x)``; chi2 : (N,) normalised
         innovation squared against ``R`` (``inf`` where not finite or behind the camera). With
@@ -262,71 +261,18 @@ class InformationFilter:
         the features (every state) at their first estimates, and a measurement must be
         usable there too; everything else at ``x``.
         """
-        ok, idx, J, W, innov, chi2 = factors.features(self.layout, self.x, self.camera, self.config, obs, gate=False)
-        if gate and self.config.gate_chi2 is not None:
-            ok &= self.innovation_chi2(obs, ok & (chi2 > self.config.gate_chi2), idx, J, innov, chi2) \
-                <= self.config.gate_chi2
+        ok, idx, J, W, innov, chi2 = factors.features(self.layout, self.x, self.camera, self.config, obs, gate)
         at = self.config.first_estimate_jacobians.points(self.x, self.first_estimates)
         if at is not None and len(obs):  # usable there too: in front, a finite prediction
             h, J, depth = factors.feature_model_at(idx, *at, self.camera)
             ok &= (depth > self.config.min_depth) & np.isfinite(np.sum((obs.uv - h) ** 2, 1) / obs.sigma_px**2)
         return ok, idx, J, W, innov, chi2
 
-    def innovation_chi2(self, obs: FeatureObservations, test: NDArray[np.bool_], idx, J: Array, innov: Array,
-                        chi2: Array) -> Array:
-        """Normalised innovation squared of ``Zm`` against their innovation covariance
-        ``S = R + J P J^T``: the measurement noise plus the uncertainty of the pose and
-        feature each touches, where that is cheap.
-
-        ``P`` is the marginal covariance of the feature (and of the pose, when it is
-        active in the recovery window), the two taken as uncorrelated; a state whose
-        covariance is not cheap (outside the window, or a pose just added, whose guess was
-        localised on these very features) counts as exact. ``S >= R``, so a measurement
-        inside the gate against ``R`` is inside it against ``S``: only ``test`` (those
-        outside) are evaluated, which bounds the cost per keyframe by the number refused
-        against ``R``.
-
-        Parameters
-        ----------
-        obs : FeatureObservations
-            ``N`` measurements.
-        test : (N,) bool
-            Which to evaluate against ``S``; the others keep ``chi2``.
-        idx, J, innov, chi2
-            As returned by :func:`~eifslam.estimation.factors.features` for ``obs``.
-
-        Returns
-        -------
-        (N,) float
-            ``chi2`` with the ``test`` entries against ``S``.
-        """
-        out = np.asarray(chi2, float).copy()
-        sel = np.flatnonzero(test)
-        if not len(sel):
-            return out
-        Jp, Jf = J[sel, :, :7], J[sel, :, 7:]
-        S = np.eye(2)[None] * (obs.sigma_px[sel] ** 2)[:, None, None]
-        P = np.nan_to_num(self.feature_covariances(obs.feature[sel]))
-        S = S + Jf @ P @ np.swapaxes(Jf, 1, 2)
-        poses, inv = np.unique(obs.pose[sel], return_inverse=True)
-        for n, fid in enumerate(poses.tolist()):
-            Cp = self.recovery.pose_covariance(self.layout.pose_columns([fid])[0])
-            if Cp is not None and np.all(np.isfinite(Cp)):
-                m = inv.reshape(-1) == n
-                S[m] += Jp[m] @ Cp @ np.swapaxes(Jp[m], 1, 2)
-        r = innov[sel]
-        try:
-            out[sel] = np.einsum("ni,ni->n", r, np.linalg.solve(S, r[:, :, None])[:, :, 0])
-        except np.linalg.LinAlgError:
-            pass
-        return out
-
     def fuse_features(self, obs: FeatureObservations, store: bool = True, gate: bool = True) -> FeatureObservations:
         """Fuse a batch of ``Zm``; return the measurements actually fused.
 
-        Measurements whose predicted depth is below ``min_depth`` or whose normalised
-        innovation squared against its innovation covariance (:meth:`innovation_chi2`)
-        exceeds ``gate_chi2`` are skipped (never fused as NaN/inf).
+        Measurements whose predicted depth is below ``min_depth`` or whose innovation
+        fails the ``gate_chi2`` test are skipped (never fused as NaN/inf).
         """
         if len(obs) == 0:
             return obs
