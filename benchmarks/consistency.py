@@ -5,10 +5,14 @@ scene and noise seed) measured by :class:`eifslam.sim.frontend.SyntheticFrontEnd
 through the system (:class:`eifslam.system.slam.Slam`) at its default settings (only
 ``frontend.sigma_px`` and ``tracking.scale_distance`` come from the simulation, so that the
 estimate is in the truth's gauge: first pose the identity, distance between the first two
-poses the true one). After every ``--every``-th frame the normalised estimation error
+poses the true one; when the map starts from another pair with the first, the truth is
+scaled to the estimate's scale). After every ``--every``-th frame the normalised estimation error
 squared (NEES) of the latest pose, 6 DOF ``[p, dtheta]``, is taken from the filter's
 estimate and covariance; at the same frames a copy of the system is smoothed
-(:meth:`Slam.smooth`) and scored the same way.
+(:meth:`Slam.smooth`) and scored the same way. The latest frame between keyframes since
+the previous checkpoint (its map pose and the covariance :meth:`Slam.track` reports) is
+scored too; without ``--fps`` (frame indices as timestamps) every frame is due as a
+keyframe, with a frame rate and a short ``--step`` some frames fall between them.
 
 The mean NEES over ``R`` runs is consistent when it lies inside the 95% interval of
 ``chi2(6 R) / R``. ``--set SECTION.KEY=VALUE`` changes a setting, to see what it does
@@ -16,14 +20,16 @@ to the consistency (e.g. ``--set experimental.zm_gate_chi2=none``).
 
 Writes ``DIR/consistency.json``::
 
-    {"filter": {"mean_nees", "lo", "hi", "runs", "frames"}, "smooth": {...},
-     "per_frame": {"frame": [...], "filter": [...], "smooth": [...]}, "settings": {...},
-     "machine": {...}, "command": "..."}
+    {"filter": {"mean_nees", "lo", "hi", "runs", "frames"}, "smooth": {...}, "between": {...},
+     "per_frame": {"frame": [...], "filter": [...], "smooth": [...], "between": [...]},
+     "settings": {...}, "machine": {...}, "command": "..."}
 
-(``filter``/``smooth`` at the last frame; ``per_frame`` the mean NEES at each checkpoint)
-and ``DIR/consistency.png`` (mean NEES against frame, with the interval).
+(``filter``/``smooth``/``between`` at the last frame; ``per_frame`` the mean NEES at each
+checkpoint) and ``DIR/consistency.png`` (mean NEES against frame, with the interval).
 
     python -m benchmarks.consistency --out out/consistency            # 50 runs x 50 frames
+    python -m benchmarks.consistency --out out/c200 --frames 200 --every 50   # 50 x 200 (and 50 x 50)
+    python -m benchmarks.consistency --out out/cb --step 0.1 --fps 10 # frames between keyframes
     python -m benchmarks.consistency --out out/consistency --jobs 3   # the same, 3 processes
     python -m benchmarks.consistency --out out/consistency --runs 5 --frames 20 # quick look
 """
@@ -52,12 +58,29 @@ from ._common import command_line, machine_info
 DOF = 6
 
 
-def pose_nees(filt, scene, k: int) -> float:
-    """NEES of pose *k* (6 DOF): the error ``[p_true - p, Log(q^* q_true)]`` against the
-    filter's 6x6 tangent covariance (:meth:`InformationFilter.pose_covariance`)."""
-    p, q = filt.pose(k)
-    e = np.concatenate([scene.positions[k] - p, quat_log(quat_multiply(quat_conjugate(q), scene.quats[k]))])
-    return float(e @ np.linalg.solve(filt.pose_covariance(k), e))
+def nees(scene, k: int, p: np.ndarray, q: np.ndarray, cov: np.ndarray, scale: float = 1.0) -> float:
+    """NEES of an estimate ``(p, q)`` of frame *k* (6 DOF): the error ``[s p_true - p,
+    Log(q^* q_true)]`` against its 6x6 tangent covariance ``cov`` (``s = scale``, the
+    estimate's scale relative to the truth)."""
+    e = np.concatenate([scale * scene.positions[k] - p, quat_log(quat_multiply(quat_conjugate(q), scene.quats[k]))])
+    return float(e @ np.linalg.solve(cov, e))
+
+
+def pose_nees(filt, scene, k: int, scale: float = 1.0) -> float:
+    """NEES of pose *k* of the filter against its covariance
+    (:meth:`InformationFilter.pose_covariance`)."""
+    return nees(scene, k, *filt.pose(k), filt.pose_covariance(k), scale)
+
+
+def gauge_scale(filt, scene, distance: float) -> float | None:
+    """The estimate's scale relative to the truth when it is in the truth's gauge up to
+    scale (first pose the identity, the scale prior ``distance`` between the first pose and
+    another), else None."""
+    sp = filt.priors.scale
+    if sp is None or int(sp[0]) != 0:
+        return None
+    d = float(np.linalg.norm(scene.positions[int(sp[1])] - scene.positions[0]))
+    return distance / d if d > 0 else None
 
 
 def interval(runs: int, dof: int = DOF, level: float = 0.95) -> tuple[float, float]:
@@ -86,25 +109,35 @@ def parse_sets(items: list[str]) -> dict[str, dict]:
     return out
 
 
-def one_run(seed: int, frames: int, checkpoints: list[int], sections: dict, map_fraction: float) -> dict:
-    """One Monte Carlo run: NEES of the latest pose at each checkpoint, filter and smoothed."""
-    sc = corridor_scene(frames, np.random.default_rng(seed))
+def one_run(seed: int, frames: int, checkpoints: list[int], sections: dict, map_fraction: float,
+            step: float = 0.5, fps: float | None = None) -> dict:
+    """One Monte Carlo run: NEES at each checkpoint of the latest pose, filter and
+    smoothed, and of the latest frame between keyframes since the previous checkpoint
+    (its reported map pose and covariance; NaN when there was none)."""
+    sc = corridor_scene(frames, np.random.default_rng(seed), step=step)
     fe = SyntheticFrontEnd(sc, seed, map_fraction=map_fraction)
     slam = Slam(sc.camera, fe.slam_config(**sections), frontend=fe)
-    out: dict[str, list] = {"filter": [], "smooth": []}
+    out: dict[str, list] = {"filter": [], "smooth": [], "between": []}
+    between = np.nan
+    distance = slam.config.tracking.scale_distance
     for k in range(frames):
-        slam.track(k)
+        res = slam.track(k, None if fps is None else k / fps)
+        scale = gauge_scale(slam.filter, sc, distance)
+        if not res.keyframe and res.covariance is not None and res.position is not None and scale is not None:
+            between = nees(sc, k, res.position, res.quat_wxyz, res.covariance, scale)
         if k not in checkpoints:
             continue
         f = slam.filter
-        if k not in f.layout.pose_ids or f.priors.scale is None or tuple(f.priors.scale[:2]) != (0, 1):
+        out["between"].append(between)
+        between = np.nan
+        if k not in f.layout.pose_ids or scale is None:
             out["filter"].append(np.nan)  # lost, or another gauge than the truth's: not scored
             out["smooth"].append(np.nan)
             continue
-        out["filter"].append(pose_nees(f, sc, k))
+        out["filter"].append(pose_nees(f, sc, k, scale))
         s = copy.deepcopy(slam) if k < frames - 1 else slam
         s.smooth()
-        out["smooth"].append(pose_nees(s.filter, sc, k))
+        out["smooth"].append(pose_nees(s.filter, sc, k, scale))
     return out
 
 
@@ -122,6 +155,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=100, help="run r uses seed SEED + r")
     ap.add_argument("--map-fraction", type=float, default=1.0,
                     help="share of the scene's points in the map (1: every point, as the tests)")
+    ap.add_argument("--step", type=float, default=0.5,
+                    help="corridor step per frame, m")
+    ap.add_argument("--fps", type=float, default=None,
+                    help="frame rate for the timestamps (default none: every frame is due as a keyframe); "
+                         "e.g. --step 0.1 --fps 10 leaves frames between keyframes")
     ap.add_argument("--jobs", type=int, default=1, help="runs in parallel processes (same results)")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     args = ap.parse_args(argv)
@@ -129,7 +167,8 @@ def main(argv: list[str] | None = None) -> int:
     checkpoints = sorted({k for k in range(args.every - 1, args.frames, args.every)} | {args.frames - 1})
     t0 = time.perf_counter()
     rows = []
-    work = [(args.seed + r, args.frames, checkpoints, sections, args.map_fraction) for r in range(args.runs)]
+    work = [(args.seed + r, args.frames, checkpoints, sections, args.map_fraction, args.step, args.fps)
+            for r in range(args.runs)]
     with ProcessPoolExecutor(args.jobs) if args.jobs > 1 else nullcontext() as pool:
         for r, row in enumerate(pool.map(_one_run, work) if pool else map(_one_run, work)):
             rows.append(row)
@@ -138,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     seconds = time.perf_counter() - t0
     res: dict = {}
     per_frame: dict[str, list] = {"frame": checkpoints}
-    for mode in ("filter", "smooth"):
+    for mode in ("filter", "smooth", "between"):
         V = np.array([row[mode] for row in rows], float)  # (runs, checkpoints)
         ok = np.isfinite(V[:, -1])
         n = int(ok.sum())
@@ -146,20 +185,24 @@ def main(argv: list[str] | None = None) -> int:
         res[mode] = dict(mean_nees=float(np.mean(V[ok, -1])) if n else None, lo=lo, hi=hi, runs=n,
                          frames=args.frames, median_nees=float(np.median(V[ok, -1])) if n else None,
                          consistent=bool(n and lo <= np.mean(V[ok, -1]) <= hi))
-        per_frame[mode] = [float(np.nanmean(V[:, c])) for c in range(V.shape[1])]
+        per_frame[mode] = [float(np.nanmean(V[:, c])) if np.isfinite(V[:, c]).any() else None
+                           for c in range(V.shape[1])]
     res["per_frame"] = per_frame
-    res["settings"] = dict(sections=sections, map_fraction=args.map_fraction, seed=args.seed, jobs=args.jobs,
+    res["settings"] = dict(sections=sections, map_fraction=args.map_fraction, step=args.step, fps=args.fps, seed=args.seed,
+                           jobs=args.jobs,
                            seconds=round(seconds, 1))
     res["machine"] = machine_info()
     res["command"] = command_line(__spec__.name, sys.argv[1:] if argv is None else argv)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "consistency.json").write_text(json.dumps(res, indent=1))
-    for mode in ("filter", "smooth"):
+    for mode in ("filter", "smooth", "between"):
         m = res[mode]
+        if not m["runs"]:
+            continue
         print(f"{mode}: mean NEES {m['mean_nees']:.2f} (95% interval {m['lo']:.2f}-{m['hi']:.2f}, "
               f"{m['runs']} runs x {m['frames']} frames) {'consistent' if m['consistent'] else 'INCONSISTENT'}")
-    print(f"per frame {checkpoints}: filter {np.round(per_frame['filter'], 2).tolist()} "
-          f"smooth {np.round(per_frame['smooth'], 2).tolist()}  ({seconds:.0f} s)")
+    print(f"per frame {checkpoints}: " + " ".join(f"{m} {[None if v is None else round(v, 2) for v in per_frame[m]]}"
+                                                 for m in ("filter", "smooth", "between")) + f"  ({seconds:.0f} s)")
     _plot(res, args.out / "consistency.png")
     return 0
 
@@ -175,7 +218,11 @@ def _plot(res: dict, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(6, 3.5))
     ax.plot(pf["frame"], pf["filter"], "o-", label="filter")
     ax.plot(pf["frame"], pf["smooth"], "s-", label="smooth")
-    ax.axhspan(res["filter"]["lo"], res["filter"]["hi"], color="0.85", label="95% interval")
+    if any(v is not None for v in pf["between"]):
+        ax.plot(pf["frame"], [np.nan if v is None else v for v in pf["between"]], "^-",
+                label="frame between keyframes")
+    lo, hi = interval(max(res["filter"]["runs"], 1))
+    ax.axhspan(lo, hi, color="0.85", label="95% interval")
     ax.axhline(DOF, color="k", lw=0.8)
     ax.set_yscale("log")
     ax.set_xlabel("frame (latest pose)")

@@ -230,6 +230,17 @@ def test_consistency_benchmark_writes_its_json(tmp_path):
     assert (tmp_path / "consistency.png").stat().st_size > 0
 
 
+def test_consistency_benchmark_scores_frames_between_keyframes(tmp_path):
+    """A short corridor step leaves frames between keyframes: their reported covariance is
+    scored too."""
+    r = run_module("consistency", "--out", str(tmp_path), "--runs", "1", "--frames", "12", "--every", "6",
+                   "--step", "0.1", "--fps", "10")
+    assert r.returncode == 0, r.stderr
+    res = json.loads((tmp_path / "consistency.json").read_text())
+    assert res["between"]["runs"] == 1 and 0 < res["between"]["mean_nees"] < 1e3
+    assert res["settings"]["step"] == 0.1 and len(res["per_frame"]["between"]) == 2
+
+
 def test_consistency_jobs_give_the_same_figures(tmp_path):
     """``--jobs 2`` gives the same figures as one process."""
     args = ["--runs", "2", "--frames", "6", "--every", "6"]

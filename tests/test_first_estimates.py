@@ -149,17 +149,6 @@ def _tracked(frames: int, seed: int):
     return slam.filter, fe
 
 
-def test_relative_gate_statistic_is_against_the_measurements_own_covariance():
-    """The statistic is the measurement's own normalised innovation squared at the
-    filter's estimate of the two poses."""
-    from eifslam.system.algorithm1 import relative_gate_statistic
-
-    f, _ = _tracked(3, 1)
-    rp = next(r for r in f.store.relative if r.i == 0)  # pose 0 is fixed by its prior
-    _, _, W, innov = f.linearise_relative([rp])
-    assert relative_gate_statistic(f, rp) == pytest.approx(float(innov[0] @ W[0] @ innov[0]), rel=1e-12)
-
-
 @pytest.mark.parametrize("text, mode", [("off", "off"), ("false", "off"), ("'off'", "off"), ("true", "all"),
                                         ("features", "features"), ("all", "all")])
 def test_first_estimates_option_from_a_configuration_file(tmp_path, text, mode):

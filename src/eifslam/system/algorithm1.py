@@ -29,11 +29,11 @@ from numpy.typing import NDArray
 
 from ..errors import EstimatorError
 from ..estimation.initialisation import pose_from_relative
-from ..estimation.localisation import localise_pose
+from ..estimation.localisation import localise_pose, map_pose_sensitivity
 from ..estimation.measurements import RelativePose
 from ..frontend.results import RelativePoseResult
 from ..geometry.camera import PinholeCamera
-from ..geometry.rotations import quat_conjugate, quat_log, quat_multiply
+from ..geometry.rotations import quat_conjugate, quat_left_matrix, quat_log, quat_multiply, quat_normalize
 from .mapping import project
 
 if TYPE_CHECKING:
@@ -42,7 +42,7 @@ if TYPE_CHECKING:
 Array = NDArray[np.float64]
 
 __all__ = ["OnMap", "Placement", "PoseGuess", "agrees", "algorithm1", "initial_pose", "inlier_fraction",
-           "pose_from_reference", "pose_on_map", "relative_gate_statistic", "relative_ok"]
+           "map_pose_uncertainty", "pose_from_reference", "pose_on_map", "relative_gate_statistic", "relative_ok"]
 
 
 @dataclass(frozen=True)
@@ -290,21 +290,64 @@ def inlier_fraction(camera: PinholeCamera, p: Array, q: Array, X: Array, uv: Arr
 def relative_ok(zr_zt: RelativePose | None, guess: PoseGuess, tracker: Tracker) -> bool:
     """Whether step 5 fuses the ``ZR``/``ZT``: there is one, the map did not contradict it
     (:func:`pose_from_reference`), and, when the new pose was refined on the map, its
-    normalised innovation at the pose the map supports is within
-    ``ExperimentalConfig.relative_gate_chi2`` (:func:`relative_gate_statistic`; the new
-    pose must be in the state)."""
+    normalised innovation squared against its innovation covariance at the pose the map
+    supports is within ``ExperimentalConfig.relative_gate_chi2``
+    (:func:`relative_gate_statistic`; the new pose must be in the state)."""
     if zr_zt is None or not guess.relative_usable:
         return False
     chi2 = tracker.config.experimental.relative_gate_chi2
-    return not (guess.refined and chi2 is not None and relative_gate_statistic(tracker.filter, zr_zt) > chi2)
+    if not guess.refined or chi2 is None:
+        return True
+    return relative_gate_statistic(tracker.filter, zr_zt, map_pose_uncertainty(zr_zt.j, tracker)) <= chi2
 
 
-def relative_gate_statistic(filt, rp: RelativePose) -> float:
-    """Normalised innovation squared of a ``ZR``/``ZT`` against its own covariance ``R``
-    (5 DOF), at the filter's current estimate of the two poses.
+def map_pose_uncertainty(k: int, tracker: Tracker) -> tuple[NDArray[np.int64], Array, Array] | None:
+    """How pose *k*, at its guess localised on the known map (in the state, not fused
+    yet), is uncertain: ``(ids (F,), A (6, 3F), C (6, 6))`` with the pose's error ``[dp,
+    dtheta] = A dX + e``, ``dX`` the errors of the map features ``ids`` it fits and ``e``
+    independent of the map with covariance ``C``
+    (:func:`~eifslam.estimation.localisation.map_pose_sensitivity`); None when the frame
+    fits too few of them."""
+    filt, cfg = tracker.filter, tracker.config
+    _, X, uv, _, ids = tracker.known_map(k)
+    p, q = filt.pose(k)
+    h, z = project(tracker.camera, p, q, X)
+    inl = (z > filt.config.min_depth) & (np.linalg.norm(uv - h, axis=1) < cfg.tracking.inlier_radius_px)
+    out = map_pose_sensitivity(tracker.camera, p, q, X[inl], cfg.zm_sigma_px)
+    return None if out is None else (ids[inl], out[1], out[0])
 
-    The poses' uncertainty is left out: adding it admits wrong relative poses on real
-    images, whose stated pixel noise is several times the true one.
+
+def relative_gate_statistic(filt, rp: RelativePose,
+                            pose_j: tuple[NDArray[np.int64], Array, Array] | None = None) -> float:
+    """Normalised innovation squared of a ``ZR``/``ZT`` (5 DOF) at the filter's current
+    estimate of its two poses, against its innovation covariance ``S = Q + J P J^T``.
+
+    ``Q`` is the measurement's own covariance; ``P`` the joint covariance of pose ``i`` (a
+    state of the recovery window) and pose ``j`` at a guess localised on the map
+    (``pose_j``, :func:`map_pose_uncertainty`): ``J P J^T = G P_(i, X) G^T + J_j C J_j^T``
+    with ``G = [J_i, J_j A]`` over pose ``i`` and the map features pose ``j`` fits
+    (:meth:`InformationFilter.propagate`, so that the correlation of pose ``i`` with
+    those features counts). Without ``pose_j``, or where the filter has no cheap
+    covariance, the states count as exact (against ``Q`` alone).
     """
-    _, _, W, innov = filt.linearise_relative([rp])
-    return float(innov[0] @ W[0] @ innov[0])
+    idx, J, W, innov = filt.linearise_relative([rp])
+    r = innov[0]
+    if pose_j is None:
+        return float(r @ W[0] @ r)
+    ids, A, C = pose_j
+    _, qj = filt.pose(rp.j)
+    E = np.zeros((7, 6))  # [dp, dtheta] -> [dp, dq], dq = q ⊗ [0, dtheta / 2]
+    E[:3, :3] = np.eye(3)
+    E[3:, 3:] = 0.5 * quat_left_matrix(quat_normalize(qj))[:, 1:]
+    Ji, Jj = J[0][:, :7], J[0][:, 7:] @ E
+    S = np.linalg.inv(W[0]) + Jj @ C @ Jj.T
+    G = np.concatenate([Ji, Jj @ A], 1)
+    M = filt.propagate([rp.i], ids, G)
+    if M is None:
+        M = filt.feature_propagate(ids, Jj @ A)
+    if np.all(np.isfinite(M)):
+        S = S + M
+    try:
+        return float(r @ np.linalg.solve(S, r))
+    except np.linalg.LinAlgError:
+        return float(r @ W[0] @ r)
