@@ -5,6 +5,7 @@ split conditionals inside merged chunks."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from eifslam.estimation import backsub
 from eifslam.estimation.filter import InformationFilter
@@ -91,3 +92,23 @@ def test_recent_solution_is_exact_for_the_recent_states_and_leaves_the_older_one
     assert recent.sum() > 0 and (~(recent | active)).sum() > 0
     np.testing.assert_allclose(got[recent | active], exact[recent | active], rtol=1e-9, atol=1e-9)
     assert np.all(got[~(recent | active)] == 123.0)
+
+
+@pytest.mark.parametrize("recovery", ["incremental", "full"])
+def test_local_map_is_the_features_measured_in_the_last_steps(recovery):
+    """``local_map`` (from the recovery's bookkeeping) holds exactly the features that
+    ``recent_features`` marks among all of them, in state order, at their estimates; with
+    the full recovery, every feature."""
+    sc, m = scene(40, 7)
+    f = run_slam(sc, m, InformationFilter(sc.camera, recovery=recovery, window=1))
+    ids, X = f.features()
+    ids = np.asarray(ids, np.int64)
+    for steps in (1, 3, 10, 1000):
+        got, Xg = f.local_map(steps)
+        want = ids[f.recent_features(ids, steps)]
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(Xg, f.x[f.layout.feature_columns(want)].reshape(-1, 3))
+        if recovery == "full":
+            np.testing.assert_array_equal(got, ids)
+    if recovery == "incremental":
+        assert 0 < len(f.local_map(1)[0]) < len(f.local_map(1000)[0]) == len(ids)

@@ -251,6 +251,11 @@ class DenseEKF:
         """Every measurement costs the same: True."""
         return True
 
+    def local_map(self, steps: int) -> tuple[NDArray[np.int64], Array]:
+        """Every feature is current: all of them, ids ``(F,)`` and positions ``(F, 3)``."""
+        ids, X = self.features()
+        return np.asarray(ids, np.int64), X
+
     def recent_features(self, track_ids, steps: int | None = None) -> NDArray[np.bool_]:
         """Every feature is current: all True ``(N,)``."""
         return np.ones(len(np.asarray(track_ids).reshape(-1)), bool)

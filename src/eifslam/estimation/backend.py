@@ -109,6 +109,12 @@ class Backend(Protocol):
         not tell)."""
         ...
 
+    def local_map(self, steps: int) -> tuple[NDArray[np.int64], Array]:
+        """Track ids ``(F,)`` and positions ``(F, 3)`` of the map features measured in the
+        last ``steps`` recoveries (every feature where the back end does not tell), at a
+        cost that does not grow with the map where it can tell."""
+        ...
+
     def affordable_features(self, track_ids) -> bool:
         """Whether new measurements of these map features cost the next recovery no solve
         of the whole state (True where the back end does not tell)."""

@@ -446,6 +446,18 @@ class InformationFilter:
             return np.zeros(0, bool)
         return self.recovery.measured_within(self.layout.feature_columns(ids)[:, 0], steps)
 
+    def local_map(self, steps: int) -> tuple[NDArray[np.int64], Array]:
+        """Track ids ``(F,)`` and positions ``(F, 3)`` of the map features measured in the
+        last ``steps`` recoveries (every feature with the full recovery), found from the
+        recovery's bookkeeping rather than by a pass over every feature."""
+        entries = self.recovery.recent_entries(int(steps), self.dim)
+        if entries is None:
+            ids, X = self.features()
+            return np.asarray(ids, np.int64), X
+        ids = self.layout.features_starting_at(entries)
+        ids = ids[ids >= 0]
+        return ids, self.x[self.layout.feature_columns(ids)].reshape(-1, 3) if len(ids) else np.zeros((0, 3))
+
     def affordable_features(self, track_ids) -> bool:
         """Whether new measurements of the map features ``track_ids`` cost the next
         recovery no solve of the whole state (re-activating those marginalised is cheaper

@@ -520,6 +520,14 @@ class IncrementalRecovery:
         last = self._last[np.where(known, starts, 0)] if len(self._last) else np.zeros(starts.shape, np.int64)
         return ~known | (self.stats.steps - last < steps)
 
+    def recent_entries(self, steps: int, n: int) -> IntArray:
+        """Entries of a state of dimension ``n`` measured within the last ``steps`` steps,
+        as of the last step (the block starts of those states among them; the entries
+        added since count as measured now): ``O(n)`` in NumPy over one integer array, not
+        per state."""
+        old = np.flatnonzero(self.stats.steps - self._last < steps)
+        return np.concatenate([old, np.arange(len(self._last), max(int(n), len(self._last)))])
+
     def rebuild_flops(self) -> float:
         """The cost model of a rebuild (see ``full_solve_flops_per_entry``)."""
         return max(self.min_rebuild_flops, self.full_solve_flops_per_entry * self._map.n)

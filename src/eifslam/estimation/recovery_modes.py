@@ -73,6 +73,12 @@ class RecoveryMode(Protocol):
         where the recovery does not tell)."""
         ...
 
+    def recent_entries(self, steps: int, n: int) -> IntArray | None:
+        """Entries, of a state of dimension ``n``, of the states measured in the last
+        ``steps`` recoveries (their block starts among them), without a pass over every
+        state's block (None: the recovery does not tell, every state counts)."""
+        ...
+
     def affordable(self, starts: IntArray) -> bool:
         """Whether measuring the states whose blocks start at ``starts`` costs the next
         recovery no solve of the whole state."""
@@ -132,6 +138,9 @@ class FullRecovery:
 
     def measured_within(self, starts: IntArray, steps: int | None) -> NDArray[np.bool_]:
         return np.ones(np.shape(starts), bool)
+
+    def recent_entries(self, steps: int, n: int) -> IntArray | None:
+        return None
 
     def affordable(self, starts: IntArray) -> bool:
         return True
@@ -228,6 +237,9 @@ class WindowRecovery:
     def measured_within(self, starts: IntArray, steps: int | None) -> NDArray[np.bool_]:
         inc = self.incremental
         return inc.measured_within(starts, inc.feature_window if steps is None else steps)
+
+    def recent_entries(self, steps: int, n: int) -> IntArray | None:
+        return self.incremental.recent_entries(steps, n)
 
     def affordable(self, starts: IntArray) -> bool:
         return self.incremental.reactivation_affordable(starts)

@@ -98,6 +98,11 @@ class StateLayout:
         self._feature[track_id] = off
         self._order.append(StateKey(StateKind.FEATURE, track_id))
         self.dim += FEATURE_DIM
+        starts = self.__dict__.get("_starts")
+        if starts is not None:
+            if off >= len(starts):
+                starts = self._starts = np.concatenate([starts, np.full(max(len(starts), off + 1), -1, np.int64)])
+            starts[off] = track_id
         lut = self.__dict__.get("_lut")
         if lut is not None:
             if 0 <= track_id < len(lut):
@@ -110,6 +115,23 @@ class StateLayout:
     # -- queries --------------------------------------------------------------------
     def has_pose(self, frame_id: int) -> bool:
         return int(frame_id) in self._pose
+
+    def features_starting_at(self, columns) -> NDArray[np.int64]:
+        """Track ids ``(N,)`` of the features whose blocks start at state entries
+        ``columns (N,)``, ``-1`` where none does (an array kept up to date as features are
+        added: ``O(N)`` per query)."""
+        starts = self.__dict__.get("_starts")
+        if starts is None:
+            starts = np.full(max(2 * self.dim, 1024), -1, np.int64)
+            if self._feature:
+                starts[np.fromiter(self._feature.values(), np.int64, count=len(self._feature))] = \
+                    np.fromiter(self._feature.keys(), np.int64, count=len(self._feature))
+            self._starts = starts
+        cols = np.asarray(columns, np.int64).reshape(-1)
+        inside = (cols >= 0) & (cols < len(starts))
+        out = np.full(len(cols), -1, np.int64)
+        out[inside] = starts[cols[inside]]
+        return out
 
     def has_feature(self, track_id: int) -> bool:
         return int(track_id) in self._feature

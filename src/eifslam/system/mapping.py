@@ -208,7 +208,7 @@ class Mapper:
         (:meth:`FrontEnd.reobserve`); returns how many were found.
 
         The local map is the features measured in the last :data:`RECENT_STEPS` keyframes
-        (:meth:`InformationFilter.recent_features`), whose estimate the recent
+        (:meth:`InformationFilter.local_map`), whose estimate the recent
         back-substitution keeps exact; those of them the recovery has marginalised have
         their ``Zm`` wait (:meth:`fuse_zm`). An older feature seen again (a revisit) is the
         loop closer's to find."""
@@ -216,10 +216,9 @@ class Mapper:
         filt = self.filter
         if not r or filt.layout.n_features == 0:
             return 0
-        fids, X = filt.features()
-        fids = np.asarray(fids, np.int64)
+        fids, X = filt.local_map(RECENT_STEPS)
         seen, _ = self.frontend.map_observations(k)
-        cand = ~np.isin(fids, seen) & filt.recent_features(fids, RECENT_STEPS)
+        cand = ~np.isin(fids, seen)
         if not cand.any():
             return 0
         fids, X = fids[cand], X[cand]
