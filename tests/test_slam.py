@@ -239,6 +239,15 @@ def test_finish_follows_the_mode_and_old_sessions_are_refused(tmp_path):
     sm = write_outputs(slam, tmp_path / "out", 1.0, None, html=False)["smoothing"]  # one damping per pass
     assert sm["passes"] == len(sm["step_norms"]) == len(sm["dampings"]) >= 1
     assert all(d >= 0.0 for d in sm["dampings"])
+    import json
+
+    rows = json.loads((tmp_path / "out" / "frames.json").read_text())["frames"]
+    c = [r["features"] for r in rows]  # what became of each frame's keypoints
+    assert len(c) == 4 and c[0]["matched"] == 0 and all(x["matched"] > 0 for x in c[1:])
+    assert all(x["detected"] == x["omega_p"] + x["omega_m"] >= x["matched"] for x in c)
+    assert all(x["omega_m"] >= x["in_map"] >= x["zm_fused"] >= 0 for x in c)
+    assert sum(x["zm_fused"] for x in c) == len(slam.filter.store.all_features().pose)
+    assert sum(x["relative"] for x in c) == len(slam.filter.store.relative)
     old = tmp_path / "old.pkl"
     old.write_bytes(pickle.dumps({"version": 1, "slam": slam.config}))
     with pytest.raises(EifslamError, match="pickled sessions"):

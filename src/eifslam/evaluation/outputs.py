@@ -5,7 +5,8 @@ after a run and writes, into one folder,
 
 * ``trajectory.tum``  every tracked frame, source timestamps, camera-to-world (TUM);
 * ``map.ply``         map features with colours;
-* ``frames.json``     per-frame tracking state, stage milliseconds, state size;
+* ``frames.json``     per-frame tracking state, stage milliseconds, state size, what became of
+  the frame's keypoints (detected, matched, ``Ωp``/``Ωm``, in the map, fused);
 * ``information.npz`` the final information matrix (``scipy.sparse.save_npz``);
 * ``state_layout.json`` ``{"kinds": "pff..."}``: the states in order, a pose (7 entries)
   or a feature (3), for the blocks of that matrix;
@@ -48,13 +49,48 @@ def _median(vals: list[float]) -> float | None:
     return float(np.median(vals)) if vals else None
 
 
+def feature_counts(slam: Slam) -> dict[int, dict[str, int]]:
+    """Per stored frame, what became of its keypoints at the end of the run (the
+    ``features`` entry of a ``frames.json`` record): ``detected`` keypoints; ``matched``,
+    those whose track was seen in an earlier frame; ``omega_p`` and ``omega_m``, those of
+    ``Ωp`` and ``Ωm`` tracks; ``in_map``, the ``Ωm`` ones whose feature is in the state;
+    ``zm_fused``, the frame's ``Zm`` among the stored measurements (a keyframe's
+    ``in_map - zm_fused`` were gated or rejected; a frame between keyframes fuses none);
+    ``relative``, the stored ``ZR``/``ZT`` that end at the frame."""
+    fe, filt = slam.frontend, slam.filter
+    zm = filt.store.all_features()
+    fused = np.bincount(zm.pose[zm.pose >= 0]) if len(zm.pose) else np.zeros(0, np.int64)
+    rel: dict[int, int] = {}
+    for m in filt.store.relative:
+        rel[int(m.j)] = rel.get(int(m.j), 0) + 1
+    seen = np.zeros(0, bool)
+    out: dict[int, dict[str, int]] = {}
+    for k in sorted(fe.frame_ids):
+        f = fe.frame(k)
+        ids = f.track_ids
+        if len(ids) and ids.max() >= len(seen):
+            seen = np.concatenate([seen, np.zeros(int(ids.max()) + 1 - len(seen), bool)])
+        in_state = filt.layout.has_features(ids[f.in_map]) if f.in_map.any() else np.zeros(0, bool)
+        out[k] = dict(detected=int(len(ids)), matched=int(seen[ids].sum()) if len(ids) else 0,
+                      omega_p=int((~f.in_map).sum()), omega_m=int(f.in_map.sum()),
+                      in_map=int(np.sum(in_state)), zm_fused=int(fused[k]) if k < len(fused) else 0,
+                      relative=rel.get(int(k), 0))
+        seen[ids] = True
+    return out
+
+
 def frame_rows(slam: Slam) -> list[dict[str, Any]]:
-    """One JSON-ready dict per processed frame."""
+    """One JSON-ready dict per processed frame (with :func:`feature_counts` as
+    ``features`` for the frames the front end stores)."""
+    counts = feature_counts(slam)
     rows = []
     for r in slam.results:
-        rows.append(dict(frame=r.frame_id, timestamp=r.timestamp, state=r.state.value, reason=r.reason,
-                         reference=r.reference, ms={k: round(v, 3) for k, v in r.timings_ms.items()},
-                         state_dim=r.state_dim, map_features=r.map_features, keyframe=r.keyframe))
+        row = dict(frame=r.frame_id, timestamp=r.timestamp, state=r.state.value, reason=r.reason,
+                   reference=r.reference, ms={k: round(v, 3) for k, v in r.timings_ms.items()},
+                   state_dim=r.state_dim, map_features=r.map_features, keyframe=r.keyframe)
+        if r.frame_id in counts:
+            row["features"] = counts[r.frame_id]
+        rows.append(row)
     return rows
 
 
