@@ -212,9 +212,11 @@ def main(argv: list[str] | None = None) -> int:
             continue
         print(f"{mode}: mean NEES {m['mean_nees']:.2f} (95% interval {m['lo']:.2f}-{m['hi']:.2f}, "
               f"{m['runs']} runs x {m['frames']} frames) {'consistent' if m['consistent'] else 'INCONSISTENT'}")
-    print(f"per frame {checkpoints}: " + " ".join(f"{m} {[None if v is None else round(v, 2) for v in per_frame[m]]}"
-                                                 for m in ("filter", "smooth", "between", "cost_ratio",
-                                                           "cost_ratio_max")) + f"  ({seconds:.0f} s)")
+    digits = dict(cost_ratio=4, cost_ratio_max=4)
+    print(f"per frame {checkpoints}: "
+          + " ".join(f"{m} {[None if v is None else round(v, digits.get(m, 2)) for v in per_frame[m]]}"
+                     for m in ("filter", "smooth", "between", "cost_ratio", "cost_ratio_max"))
+          + f"  ({seconds:.0f} s)")
     _plot(res, args.out / "consistency.png")
     return 0
 
