@@ -21,11 +21,15 @@ to the consistency (e.g. ``--set experimental.zm_gate_chi2=none``).
 Writes ``DIR/consistency.json``::
 
     {"filter": {"mean_nees", "lo", "hi", "runs", "frames"}, "smooth": {...}, "between": {...},
-     "per_frame": {"frame": [...], "filter": [...], "smooth": [...], "between": [...]},
+     "per_frame": {"frame": [...], "filter": [...], "smooth": [...], "between": [...],
+                   "cost_ratio": [...], "cost_ratio_max": [...]},
      "settings": {...}, "machine": {...}, "command": "..."}
 
 (``filter``/``smooth``/``between`` at the last frame; ``per_frame`` the mean NEES at each
-checkpoint) and ``DIR/consistency.png`` (mean NEES against frame, with the interval).
+checkpoint, and the mean and largest over the runs of the filter's cost over the smoothed
+cost: :attr:`SmoothingReport.common_costs <eifslam.estimation.smoothing.SmoothingReport>`
+at the filter's estimate over its lowest value) and ``DIR/consistency.png`` (mean NEES
+against frame, with the interval).
 
     python -m benchmarks.consistency --out out/consistency            # 50 runs x 50 frames
     python -m benchmarks.consistency --out out/c200 --frames 200 --every 50   # 50 x 200 (and 50 x 50)
@@ -117,7 +121,7 @@ def one_run(seed: int, frames: int, checkpoints: list[int], sections: dict, map_
     sc = corridor_scene(frames, np.random.default_rng(seed), step=step)
     fe = SyntheticFrontEnd(sc, seed, map_fraction=map_fraction)
     slam = Slam(sc.camera, fe.slam_config(**sections), frontend=fe)
-    out: dict[str, list] = {"filter": [], "smooth": [], "between": []}
+    out: dict[str, list] = {"filter": [], "smooth": [], "between": [], "cost_ratio": []}
     between = np.nan
     distance = slam.config.tracking.scale_distance
     for k in range(frames):
@@ -133,11 +137,13 @@ def one_run(seed: int, frames: int, checkpoints: list[int], sections: dict, map_
         if k not in f.layout.pose_ids or scale is None:
             out["filter"].append(np.nan)  # lost, or another gauge than the truth's: not scored
             out["smooth"].append(np.nan)
+            out["cost_ratio"].append(np.nan)
             continue
         out["filter"].append(pose_nees(f, sc, k, scale))
         s = copy.deepcopy(slam) if k < frames - 1 else slam
-        s.smooth()
+        costs = s.smooth().common_costs  # at the filter's estimate, then after each round
         out["smooth"].append(pose_nees(s.filter, sc, k, scale))
+        out["cost_ratio"].append(costs[0] / min(costs) if min(costs) > 0 else np.nan)
     return out
 
 
@@ -187,6 +193,11 @@ def main(argv: list[str] | None = None) -> int:
                          consistent=bool(n and lo <= np.mean(V[ok, -1]) <= hi))
         per_frame[mode] = [float(np.nanmean(V[:, c])) if np.isfinite(V[:, c]).any() else None
                            for c in range(V.shape[1])]
+    C = np.array([row["cost_ratio"] for row in rows], float)  # (runs, checkpoints)
+    per_frame["cost_ratio"] = [float(np.nanmean(C[:, c])) if np.isfinite(C[:, c]).any() else None
+                               for c in range(C.shape[1])]
+    per_frame["cost_ratio_max"] = [float(np.nanmax(C[:, c])) if np.isfinite(C[:, c]).any() else None
+                                   for c in range(C.shape[1])]
     res["per_frame"] = per_frame
     res["settings"] = dict(sections=sections, map_fraction=args.map_fraction, step=args.step, fps=args.fps, seed=args.seed,
                            jobs=args.jobs,
@@ -201,8 +212,11 @@ def main(argv: list[str] | None = None) -> int:
             continue
         print(f"{mode}: mean NEES {m['mean_nees']:.2f} (95% interval {m['lo']:.2f}-{m['hi']:.2f}, "
               f"{m['runs']} runs x {m['frames']} frames) {'consistent' if m['consistent'] else 'INCONSISTENT'}")
-    print(f"per frame {checkpoints}: " + " ".join(f"{m} {[None if v is None else round(v, 2) for v in per_frame[m]]}"
-                                                 for m in ("filter", "smooth", "between")) + f"  ({seconds:.0f} s)")
+    digits = dict(cost_ratio=4, cost_ratio_max=4)
+    print(f"per frame {checkpoints}: "
+          + " ".join(f"{m} {[None if v is None else round(v, digits.get(m, 2)) for v in per_frame[m]]}"
+                     for m in ("filter", "smooth", "between", "cost_ratio", "cost_ratio_max"))
+          + f"  ({seconds:.0f} s)")
     _plot(res, args.out / "consistency.png")
     return 0
 

@@ -226,6 +226,7 @@ def test_consistency_benchmark_writes_its_json(tmp_path):
         assert 0 < res[mode]["mean_nees"] < 1e3
         assert f"{mode}: mean NEES" in r.stdout
     assert res["per_frame"]["frame"] == [2, 5]
+    assert all(1.0 <= c < 1.5 for c in res["per_frame"]["cost_ratio"])  # the filter's cost, never below the smoothed
     assert res["command"].startswith("python -m benchmarks.consistency --out") and res["machine"]["cpu_count"]
     assert (tmp_path / "consistency.png").stat().st_size > 0
 
