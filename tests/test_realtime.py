@@ -366,3 +366,13 @@ def test_matches_made_ahead_give_the_front_ends_own_results(scene_frames, detect
                                     cfg.ransac_threshold_px, cfg.ransac_confidence, cfg.ransac_method)
         np.testing.assert_array_equal(again, inl)
     assert all((f.index is not None) == cfg.flann_search for f in ahead)
+    # the worker makes the matching only for some frames (``match`` False: the consumer makes
+    # it): the same tracks
+    c = FrontEnd(cam, cfg)
+    mixed = [c.detect_ahead(im, match=k % 3 != 1) for k, im in enumerate(ims)]
+    assert [f.ahead is not None for f in mixed] == [False, False, True, True, False, True]
+    res_c = [c.add_features(f, k) for k, f in enumerate(mixed) if k != 3]
+    for ra, rc in zip(res_a, res_c):
+        assert (ra.ok, ra.n_matches, ra.n_new_tracks) == (rc.ok, rc.n_matches, rc.n_new_tracks)
+    for k in (0, 1, 2, 4, 5):
+        np.testing.assert_array_equal(a.frame(k).track_ids, c.frame(k).track_ids)

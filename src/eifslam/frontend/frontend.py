@@ -251,26 +251,32 @@ class FrontEnd:
         """
         return detect_features(image, self.camera, self.config, self._thread_detector())
 
-    def detect_ahead(self, image: np.ndarray) -> Features:
-        """:meth:`detect`, plus what depends on the new frame and the one before it alone, so
-        that a prefetch worker can make it: the new frame's search index (``Features.index``,
-        FLANN for float descriptors, seeded from the descriptors themselves), and the first
-        search :meth:`add_features` makes, against the previous frame with every row free,
-        with its epipolar RANSAC (``Features.ahead``; OpenCV's estimators draw from their own
-        fixed seed). :meth:`add_features` uses the matches only when its previous frame
-        holds those descriptors, so the results are those of :meth:`detect`. One thread
-        calls it, in frame order."""
+    def detect_ahead(self, image: np.ndarray, match: bool = True) -> Features:
+        """:meth:`detect`, plus, with ``match``, what depends on the new frame and the one
+        before it alone, so that a prefetch worker can make it: the new frame's search index
+        (``Features.index``, FLANN for float descriptors, seeded from the descriptors
+        themselves), and the first search :meth:`add_features` makes, against the previous
+        frame with every row free, with its epipolar RANSAC (``Features.ahead``; OpenCV's
+        estimators draw from their own fixed seed). :meth:`add_features` makes what was not
+        made ahead itself and uses the matches only when its previous frame holds those
+        descriptors, so the results are those of :meth:`detect` either way: ``match`` only
+        says which thread does the work. One thread calls it, in frame order."""
         feats = self.detect(image)
+        previous, self._ahead_last = self._ahead_last, feats
+        if not match:
+            return feats
         index = None
         if self.config.flann_search:
             index = self._built_index(feats.descriptors)
-            feats = replace(feats, index=index)
-        previous, self._ahead_last = self._ahead_last, feats
+            feats = self._ahead_last = replace(feats, index=index)
         if previous is None:
             return feats
         t0 = time.perf_counter()
+        previous_index = previous.index
+        if previous_index is None and self.config.flann_search:
+            previous_index = self._built_index(previous.descriptors)  # the same the front end builds
         i_new, i_prev = self._matcher.match(feats.descriptors, previous.descriptors,
-                                            index1=index, index2=previous.index)
+                                            index1=index, index2=previous_index)
         inliers = self._epipolar_inliers(feats.uv[i_new], previous.uv[i_prev]) \
             if len(i_new) >= self.config.min_matches else None
         return replace(feats, ahead=AheadMatch(previous.descriptors, i_new, i_prev,

@@ -152,6 +152,10 @@ class FramePrefetcher:
         Frames decoded and detected ahead of the consumer.
     start : int
         The first frame.
+    ahead : bool
+        ``detect`` takes a second argument, whether to do more of the consumer's work
+        (:meth:`eifslam.frontend.FrontEnd.detect_ahead`'s ``match``): True while frames
+        wait in the queue (the consumer is the slower side).
 
     Notes
     -----
@@ -165,8 +169,10 @@ class FramePrefetcher:
 
     _DONE = object()
 
-    def __init__(self, seq, n: int, detect: Callable[[Any], Any], depth: int = 2, start: int = 0) -> None:
+    def __init__(self, seq, n: int, detect: Callable[..., Any], depth: int = 2, start: int = 0,
+                 ahead: bool = False) -> None:
         self._seq, self._n, self._detect, self._start = seq, int(n), detect, int(start)
+        self._ahead = bool(ahead)
         self._queue: queue.Queue = queue.Queue(maxsize=max(1, int(depth)))
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._work, name="eifslam-prefetch", daemon=True)
@@ -193,7 +199,10 @@ class FramePrefetcher:
                         return
                     continue
                 try:
-                    item: Any = self._detect(image)
+                    # frames waiting in the queue: the consumer is the slower side, so the
+                    # worker also makes what the detector's ``match`` hands over (the same
+                    # results wherever it is made); otherwise it detects only
+                    item: Any = self._detect(image, self._queue.qsize() > 0) if self._ahead else self._detect(image)
                 except EifslamError:
                     item = image  # the consumer's track() raises it again, in order
                 if not self._put((k, item, None)):
@@ -326,7 +335,8 @@ def _track_all(seq, slam: Slam, start: int, n: int, depth: int, scale: tuple | N
     t0 = time.perf_counter()
     stopped = None
     bar = tqdm(total=max(n - start, 0), desc="eifslam", unit="frame", disable=quiet, file=sys.stderr)
-    pre = FramePrefetcher(seq, n, detect, depth, start) if depth > 0 and detect is not None and n > start else None
+    pre = FramePrefetcher(seq, n, detect, depth, start, ahead=True) \
+        if depth > 0 and detect is not None and n > start else None
     wait_key = "load" if pre is None else "wait"
     try:
         for k, item, ms in (sequential_frames(seq, n, start) if pre is None else pre):
