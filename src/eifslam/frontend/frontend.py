@@ -378,6 +378,8 @@ class FrontEnd:
         self._index[fid] = index
         for p in [p for p in self._index if p not in previous[: self.config.match_window - 1] and p != fid]:
             del self._index[p]  # only the next frame's match window keeps its index
+        if self.config.seed is not None:  # the draws after this frame whichever thread built its index
+            cv2.setRNGSeed(int(self.config.seed) + fid)
         t2 = time.perf_counter()
         if len(feats) == 0:
             ok, reason = False, Reason.NO_FEATURES
