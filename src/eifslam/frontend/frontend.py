@@ -507,14 +507,14 @@ class FrontEnd:
         track_ids, uv_predicted, lf, lk = track_ids[have], uv_predicted[have], lf[have], lk[have]
         if len(track_ids) == 0:
             return 0
-        Dk = self._searchable(self._desc[fid])
-        D = np.empty((len(lf), Dk.shape[1]), Dk.dtype)  # each track's descriptor where last seen
+        # the frame's index, kept from matching (its descriptors as searched)
+        index = self._index[fid] if fid in self._index else self._built_index(self._searchable(self._desc[fid]))
+        D = np.empty((len(lf), index.descriptors.shape[1]), index.descriptors.dtype)  # each track's, where last seen
         for f in np.unique(lf).tolist():
             rows = lf == f
             D[rows] = self._desc[f][lk[rows]]
         # Lowe's ratio test over the whole frame (the radius only checks where the nearest
         # descriptor is): nearest and second-nearest keypoint of each track's descriptor
-        index = self._index[fid] if fid in self._index else self._built_index(Dk)
         nn, dd = index.knn(D, 2)
         two = nn[:, 1] >= 0
         best = np.where(two, nn[:, 0], 0)
