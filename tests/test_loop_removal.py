@@ -95,3 +95,40 @@ def test_the_system_takes_back_a_wrong_loop_and_keeps_a_true_one():
     slam.track(k + 4)  # the next keyframe's check keeps it too
     assert slam.loop_closures == [lc2] and len(slam.loops.removed) == 1
     assert 0 < _position_error(sc, slam, range(k + 5)) < 0.05
+
+
+def test_a_true_loop_fused_away_from_the_optimum_is_kept():
+    """The check tests a loop at the minimum of the cost: a true loop whose residuals are large
+    only because the estimate is away from it (here the loop frame moved 0.3 m) is kept, and
+    the estimate comes back to the truth."""
+    sc, slam = _run(N_FRAMES)
+    k = N_FRAMES - 1
+    lc, obs, p, q = _loop(sc, slam, k, k - 6, seed=7)
+    slam.loops.fuse(lc, obs, p, q)
+    filt = slam.filter
+    x = filt.complete_estimate().copy()
+    x[filt.layout.pose_columns([k])[0, :3]] += np.array([0.3, 0.0, 0.0])
+    filt.set_estimate(x)
+    assert slam.loops._residual(slam.loops._fused[0].obs) > 10 * 2 * len(obs)  # far over any bound
+    assert slam.loops.check(k, only=lc)
+    assert slam.loop_closures == [lc] and slam.loops.removed == []
+    assert 0 < _position_error(sc, slam, range(k + 1)) < 0.05
+
+
+def test_a_saved_session_keeps_the_loops_taken_back(tmp_path):
+    sc, slam = _run(N_FRAMES)
+    k = N_FRAMES - 1
+    lc, obs, p, q = _loop(sc, slam, k, k - 6, shift=0.8, yaw=0.3)
+    slam.loops.fuse(lc, obs, p, q)
+    assert not slam.loops.check(k, only=lc)
+    state = slam.loops.state_dict()
+    back = Slam(sc.camera, slam.config, frontend=slam.frontend)
+    back.loops.load_state_dict(state)
+    [(c, at, why)] = back.loops.removed
+    assert (c.frame, c.matched_frame, at) == (k, k - 6, k) and why == slam.loops.removed[0][2]
+    assert back.loop_closures == []
+    from eifslam.errors import SessionError
+
+    with pytest.raises(SessionError):
+        back.loops.load_state_dict(dict(state, removed_why=[1]))
+

@@ -492,23 +492,42 @@ class LoopCloser:
         map observations of the frames after it contradict is pulled away from its own
         measurements by them, and ``D`` grows with each such keyframe. A ``Zm`` behind its
         camera counts as contradicting.
+
+        The bound holds at the minimum of the cost, not at a linearisation point far from
+        it: a true loop fused where the estimate had drifted (one linearised update moves
+        the states only part of the way) leaves residuals above it. So a loop over the bound
+        is tested once more after relinearising every stored measurement at the estimate
+        (Gauss-Newton passes of
+        :func:`~eifslam.estimation.loop_correction.relinearise_all`), and taken back only
+        when it is still over.
         """
         from ..estimation.agreement import chi2_quantile
+        from ..estimation.loop_correction import relinearise_all
 
         kept = True
         for fl in list(self._fused):
             if fl.checks <= 0 or (only is not None and fl.closure is not only) or fl.closure.frame > k:
                 continue
             obs = fl.obs
-            chi2 = self.filter.linearise_features(obs, gate=False)[5] if len(obs) else np.zeros(0)
-            D = float(np.sum(chi2))
             bound = chi2_quantile(2 * len(obs), AGREEMENT_FALSE_ALARM) if len(obs) else np.inf
+            D = self._residual(obs)
             fl.checks -= 1
+            if not D <= bound:
+                relinearise_all(self.filter, max(int(self.config.loops.smooth_passes), 1))
+                D = self._residual(obs)
             if not D <= bound:
                 self.remove(fl.closure, frame=k, why=f"the estimate after it contradicts it (residual {D:.3g} "
                                                    f"> {bound:.3g}, {2 * len(obs)} DOF)")
                 kept = False
         return kept
+
+    def _residual(self, obs: FeatureObservations) -> float:
+        """``sum_i |z_i - h_i(x)|^2 / sigma_i^2`` of a loop's ``Zm`` at the current estimate
+        (inf when one is behind its camera)."""
+        if not len(obs):
+            return 0.0
+        self.filter.complete_estimate()
+        return float(np.sum(self.filter.linearise_features(obs, gate=False)[5]))
 
     def remove(self, loop: int | LoopClosure, frame: int | None = None, why: str = "taken back by the caller"
                ) -> LoopClosure:
@@ -697,10 +716,16 @@ class LoopCloser:
     # -- sessions -------------------------------------------------------------------
     def state_dict(self) -> dict:
         """What a session keeps: the place index, the loops found and the last query's
-        candidate places, and the old features fused at each loop frame."""
+        candidate places, the old features fused at each loop frame, and the loops taken
+        back (with the frame and the reason). What taking a kept loop back needs (its
+        fusion's record, the estimate before it) is not kept: a loop fused before the
+        session was saved stays."""
         C = np.array([[getattr(c, f) for f in _FIELDS] for c in self.closures], float).reshape(-1, len(_FIELDS))
         L = [np.stack([np.full(len(t), f), t], 1) for f, t in self._loop_tracks.items()]
+        R = np.array([[getattr(c, f) for f in _FIELDS] + [at] for c, at, _ in self.removed], float
+                     ).reshape(-1, len(_FIELDS) + 1)
         return {"index": self.index.state_dict(), "closures": C,
+                "removed": R, "removed_why": [str(why) for _, _, why in self.removed],
                 "streak": np.array(self._streak, np.int64).reshape(-1, 3),
                 "loop_tracks": np.concatenate(L).astype(np.int64) if L else np.zeros((0, 2), np.int64)}
 
@@ -710,8 +735,18 @@ class LoopCloser:
         C = take(d, "closures", np.float64, (None, len(_FIELDS)))
         ints = {"frame", "matched_frame", "matches", "inliers", "required", "five_point_inliers",
                 "five_point_required", "fused"}
-        self.closures = [LoopClosure(**{f: (int(v) if f in ints else float(v)) for f, v in zip(_FIELDS, row)})
-                         for row in C]
+        def closure(row) -> LoopClosure:
+            return LoopClosure(**{f: (int(v) if f in ints else float(v)) for f, v in zip(_FIELDS, row)})
+
+        self.closures = [closure(row) for row in C]
+        R = take(d, "removed", np.float64, (None, len(_FIELDS) + 1)) if "removed" in d \
+            else np.zeros((0, len(_FIELDS) + 1))
+        why = d.get("removed_why", [])
+        if not isinstance(why, list) or len(why) != len(R) or not all(isinstance(w, str) for w in why):
+            from ..errors import SessionError
+
+            raise SessionError(f"loops: 'removed_why' must hold {len(R)} strings")
+        self.removed = [(closure(row[:-1]), int(row[-1]), str(w)) for row, w in zip(R, why)]
         S = take(d, "streak", np.int64, (None, 3))
         self._streak = [tuple(int(v) for v in row) for row in S]
         T = take(d, "loop_tracks", np.int64, (None, 2)) if "loop_tracks" in d else np.zeros((0, 2), np.int64)
