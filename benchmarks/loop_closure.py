@@ -4,6 +4,8 @@ Usage::
 
     python -m benchmarks.loop_closure --data ../shared/datasets --out out/loops \
         --sets loopworld,aliasing,all --detectors sift,orb,akaze --seeds 0,1,2 --doc docs/loop_closure.md
+    python -m benchmarks.loop_closure --data ../shared/datasets --out out/loops \
+        --sets loopworld --seeds 0 --resume  # runs added to the same table
     python -m benchmarks.loop_closure --data ../shared/datasets --out out/loops
     python -m benchmarks.loop_closure --data ../shared/datasets --out out/loops --only 7scenes-redkitchen-a
     python -m benchmarks.loop_closure --data out --only loopworld --features orb --out out/lw  # after eifslam render --scene loop --out out/loopworld
@@ -203,6 +205,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", "--seed", dest="seeds", default="0,1,2", help="comma-separated seeds (default: 0,1,2)")
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--no-baseline", action="store_true", help="skip the --no-loop-closure run")
+    ap.add_argument("--resume", action="store_true",
+                    help="keep the rows of OUT/loop_closure.json and run only the runs it does not have "
+                         "(the page then lists every command that made its rows)")
     ap.add_argument("--doc", type=Path, default=None, help="also write the table as a generated Markdown page")
     ap.add_argument("--config", type=Path, default=None,
                     help="a configuration file (as for 'eifslam run --config'); mode and loop closure are set here")
@@ -216,11 +221,18 @@ def main(argv: list[str] | None = None) -> int:
     sets = resolve_sets(args.data, split_list(args.sets), args.out)
     detectors, seeds = split_list(args.detectors), [int(v) for v in split_list(args.seeds)]
     command = command_line(__spec__.name, argv if argv is not None else sys.argv[1:])
-    doc: dict[str, Any] = {"command": command, "machine": machine_info(), "rows": []}
+    doc: dict[str, Any] = {"command": command, "commands": [command], "machine": machine_info(), "rows": []}
+    if args.resume and (args.out / "loop_closure.json").exists():
+        old = json.loads((args.out / "loop_closure.json").read_text())
+        doc["rows"] = [r for r in old.get("rows", []) if not r.get("error")]
+        doc["commands"] = [c for c in old.get("commands", [old.get("command")]) if c] + [command]
+    done = {(r["dataset"], r["detector"], r["seed"]) for r in doc["rows"]}
     for src in sets:
         for det in detectors:
             for seed in seeds:
                 tag = f"{src.name}-{det}-s{seed}"
+                if (src.name, det, seed) in done:
+                    continue
                 row: dict[str, Any] = {"dataset": src.name, "detector": det, "seed": seed, "error": None}
                 try:
                     log(f"{tag}: loop closure on")
@@ -258,7 +270,8 @@ def main(argv: list[str] | None = None) -> int:
                                     short_error(r.get("error"))] for r in doc["rows"]])
     print(table)
     if args.doc is not None:
-        page = (markdown_header("Loop closure: every loop scored against the ground truth", command, doc["machine"])
+        page = (markdown_header("Loop closure: every loop scored against the ground truth",
+                                "`, then `".join(doc["commands"]), doc["machine"])
                 + "\nA loop is true when at least a fifth of each view, at the depth of the scene it shows, lies "
                 "inside the other view at a like depth (`benchmarks/loop_closure.py`). \"false kept\" counts "
                 "the false loops in the final map; \"removed\" the loops taken back after fusion; \"refused\" "

@@ -1,11 +1,16 @@
 """Storage of the sparse information matrix and vector (pure NumPy / SciPy).
 
 Fusing a batch (paper eq. 8) appends the blocks ``J^T Q^-1 J`` as triplets in constant
-time per measurement; the matrix is summed into CSC form when somebody needs it
-(recovery, plots), and when the triplets waiting outnumber twice the matrix's non-zeros
-(and :data:`FOLD_TRIPLETS`): a ``Zm`` leaves 100 triplets (1.6 kB) but adds about 50
-non-zeros, so folding bounds the memory to a few times the matrix's, at an amortised
-cost proportional to the non-zeros.
+time per measurement. The matrix is kept in two summed parts, like a log-structured merge:
+the triplets are summed into a small CSC matrix of recent additions once
+:data:`FOLD_TRIPLETS` of them wait, and that one into the main CSC matrix once it holds a
+:data:`MERGE_FRACTION` of the main one's non-zeros; :meth:`InformationStore.matrix` sums
+what waits when somebody needs ``I`` (recovery, plots). A ``Zm`` leaves 42 to 100 triplets
+(16 bytes each) but about 50 non-zeros, so the waiting triplets never take more than
+32 MB, the recent part a fraction of the main one, and a merge's temporaries about twice
+the main matrix (summing every triplet of a long run at once took four times it); each
+entry is summed into the main matrix about ``1 / MERGE_FRACTION`` times, so the cost
+stays proportional to the non-zeros added.
 """
 
 from __future__ import annotations
@@ -20,8 +25,12 @@ IntArray = NDArray[np.int64]
 
 _INT32_MAX = np.iinfo(np.int32).max
 
-#: Triplets that may wait before they are folded into the matrix (32 MB of them).
+#: Triplets that may wait before they are summed into the recent part (32 MB of them).
 FOLD_TRIPLETS = 2_000_000
+
+#: The recent part is summed into the main matrix once it holds this fraction of the main
+#: one's non-zeros.
+MERGE_FRACTION = 0.25
 
 
 class InformationStore:
@@ -34,7 +43,8 @@ class InformationStore:
         self._cols: list[IntArray] = []
         self._vals: list[Array] = []
         self._pending = 0
-        self._cached: sp.csc_matrix = sp.csc_matrix((0, 0))
+        self._cached: sp.csc_matrix = sp.csc_matrix((0, 0))  # the main part
+        self._recent: sp.csc_matrix | None = None  # summed triplets not yet in the main part
         #: Times ``I`` and ``i`` were replaced wholesale (:meth:`reset`, :meth:`set`): a sum of
         #: fusions recorded at one generation can be subtracted only at that generation.
         self.generation = 0
@@ -80,10 +90,18 @@ class InformationStore:
         self._fold_if_due()
 
     def _fold_if_due(self) -> None:
-        """Sum the waiting triplets into the matrix once they outnumber twice its
-        non-zeros and :data:`FOLD_TRIPLETS` (the memory they take then stays within a few
-        times the matrix's; the cost, amortised, stays proportional to its non-zeros)."""
-        if self._pending > max(FOLD_TRIPLETS, 2 * self._cached.nnz):
+        """Sum the waiting triplets into the recent part once there are
+        :data:`FOLD_TRIPLETS` of them, and the recent part into the main matrix once it
+        holds :data:`MERGE_FRACTION` of its non-zeros."""
+        if self._pending <= FOLD_TRIPLETS:
+            return
+        n = self.dim
+        r, c, v = self.pending_triplets()
+        self._rows, self._cols, self._vals, self._pending = [], [], [], 0
+        new = sp.csc_matrix((v, (r, c)), shape=(n, n))
+        del r, c, v
+        self._recent = new if self._recent is None else (_extend(self._recent, n) + new).tocsc()
+        if self._recent.nnz > MERGE_FRACTION * self._cached.nnz:
             self.matrix()
 
     def _indices(self, idx: IntArray) -> NDArray:
@@ -129,25 +147,25 @@ class InformationStore:
         self._fold_if_due()
 
     def pending_triplets(self) -> tuple[IntArray, IntArray, Array]:
-        """Triplets added since the last :meth:`matrix` call (not yet summed)."""
+        """Triplets added and not yet summed into either part of the matrix."""
         if not self._rows:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
         return np.concatenate(self._rows), np.concatenate(self._cols), np.concatenate(self._vals)
 
     def matrix(self) -> sp.csc_matrix:
-        """The information matrix ``I`` as CSC, shape ``(dim, dim)``."""
+        """The information matrix ``I`` as CSC, shape ``(dim, dim)``: every part summed
+        into the main one."""
         n = self.dim
-        base = self._cached
-        if base.shape != (n, n):
-            # the new states' columns are empty: extend the column pointers and share the
-            # entries (a copy and scipy's resize cost ~0.7 s at 35 M non-zeros, this 1 ms);
-            # the matrices handed out are never changed in place
-            base = sp.csc_matrix((base.data, base.indices, np.concatenate(
-                [base.indptr, np.full(n - base.shape[1], base.indptr[-1], base.indptr.dtype)])), shape=(n, n))
+        base = _extend(self._cached, n)
+        parts = [self._recent] if self._recent is not None else []
         if self._pending:
             r, c, v = self.pending_triplets()
-            base = (base + sp.csc_matrix((v, (r, c)), shape=(n, n))).tocsc()
             self._rows, self._cols, self._vals, self._pending = [], [], [], 0
+            parts.append(sp.csc_matrix((v, (r, c)), shape=(n, n)))
+            del r, c, v
+        self._recent = None
+        for part in parts:
+            base = (base + _extend(part, n)).tocsc()
         self._cached = base
         return base
 
@@ -166,11 +184,24 @@ class InformationStore:
         self._vec[:] = 0.0
         self.generation += 1
         self._rows, self._cols, self._vals, self._pending = [], [], [], 0
+        self._recent = None
         self._cached = sp.csc_matrix((self.dim, self.dim))
 
     def set(self, I: sp.spmatrix, i: Array) -> None:
         """Replace ``I`` and ``i`` (scale recovery)."""
         self.generation += 1
         self._rows, self._cols, self._vals, self._pending = [], [], [], 0
+        self._recent = None
         self._cached = sp.csc_matrix(I)
         self._vec[: self.dim] = i
+
+
+def _extend(A: sp.csc_matrix, n: int) -> sp.csc_matrix:
+    """``A`` as an ``(n, n)`` matrix, the new states' columns empty: the column pointers
+    extended and the entries shared (a copy and SciPy's resize cost about 0.7 s at 35 M
+    non-zeros, this 1 ms). The matrices handed out are never changed in place."""
+    if A.shape == (n, n):
+        return A
+    return sp.csc_matrix((A.data, A.indices, np.concatenate(
+        [A.indptr, np.full(n - A.shape[1], A.indptr[-1], A.indptr.dtype)])), shape=(n, n))
+
