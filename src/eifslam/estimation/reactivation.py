@@ -134,11 +134,15 @@ def reactivate(plan: ReactivationPlan, window: ActiveWindow, conds: Conditionals
     access to the full ``I``.
     """
     feats, poses = plan.features, plan.poses
+    parts: list[tuple] = []  # features undone, joining the window together
     for slot in sorted(set(feats) | set(poses), reverse=True):  # latest elimination first
         if slot in poses:
+            window.restore_features(parts)  # before the window's poses change
+            parts = []
             _undo_poses(slot, np.fromiter(poses[slot], np.int64), window, conds, start)
         else:
-            _undo_features(slot, np.fromiter(feats[slot], np.int64), window, conds)
+            parts.append(_undo_features(slot, np.fromiter(feats[slot], np.int64), window, conds))
+    window.restore_features(parts)
 
 
 def _undo_poses(slot: int, blocks: IntArray, window: ActiveWindow, conds: Conditionals, start: IntArray) -> None:
@@ -185,10 +189,11 @@ def _undo_poses(slot: int, blocks: IntArray, window: ActiveWindow, conds: Condit
     conds.release(q)
 
 
-def _undo_features(slot: int, blocks: IntArray, window: ActiveWindow, conds: Conditionals) -> None:
+def _undo_features(slot: int, blocks: IntArray, window: ActiveWindow, conds: Conditionals) -> tuple:
     """Undo the elimination of features ``blocks`` (block starts) of the feature batch in
     ``conds[slot]``; the other features of the batch stay eliminated. ``C`` may be dense
-    or CSR (a rebuild's batch of every eliminated feature)."""
+    or CSR (a rebuild's batch of every eliminated feature). Returns the part for
+    :meth:`ActiveWindow.restore_features` (the caller restores several together)."""
     c = conds[slot]
     fb = c.idx[::FEATURE_DIM]
     sel = np.isin(fb, blocks)
@@ -203,15 +208,16 @@ def _undo_features(slot: int, blocks: IntArray, window: ActiveWindow, conds: Con
     DC = apply_blocks(Dinv, Cs)
     Db = apply_blocks(Dinv, c.b[rows])
     idx = c.idx[rows]
-    window.restore_features(idx, k, Cs.T @ DC, Cs.T @ Db, c.A[sel], Cs, c.b[rows])
+    part = (idx, k, Cs.T @ DC, Cs.T @ Db, c.A[sel], Cs, c.b[rows])
     conds.release(idx)
     keep = ~rows
     if not np.any(keep):
         conds.replace(slot, None)
-        return
+        return part
     Ck = c.C[keep]
     nz = _row_columns(Ck, slice(None))
     conds.replace(slot, Conditional(c.idx[keep], c.b[keep], Ck[:, nz], c.cidx[nz], Dinv=c.Dinv[~sel], A=c.A[~sel]))
+    return part
 
 
 __all__ = ["ReactivationPlan", "plan_reactivation", "reactivate", "reactivation_flops"]

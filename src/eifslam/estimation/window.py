@@ -298,21 +298,29 @@ class ActiveWindow:
         self.pidx = np.concatenate([self.pidx, idx])
         self.pos[idx] = np.arange(p0, p0 + nq)
 
-    def restore_features(self, idx: IntArray, sep: IntArray, dK: Array, db: Array, D: Array, C: Array,
-                         b: Array) -> None:
-        """Eliminated features ``idx`` (``3 g`` entries) come back with 3x3 blocks ``D``
-        (``(g, 3, 3)``), coupling ``C`` (``(3 g, len(sep))``) to the active poses at window
-        positions ``sep`` and vector ``b``; the ``sep`` block of the window gets ``dK``,
-        ``db`` back."""
-        self.P[np.ix_(sep, sep)] += dK
+    def restore_features(self, parts: "list[tuple[IntArray, IntArray, Array, Array, Array, Array, Array]]") -> None:
+        """Eliminated features come back, several batches at once: each part
+        ``(idx, sep, dK, db, D, C, b)`` holds features ``idx`` (``3 g`` entries) with 3x3
+        blocks ``D`` (``(g, 3, 3)``), coupling ``C`` (``(3 g, len(sep))``) to the active poses
+        at window positions ``sep`` and vector ``b``; the ``sep`` block of the window gets
+        ``dK``, ``db`` back. The rows of every part join the window in one copy (a copy
+        per part made re-activation cost the window's size times the parts)."""
+        if not parts:
+            return
+        rows = sum(len(p[0]) for p in parts)
+        Bn = np.zeros((rows, len(self.pidx)))
+        r = 0
+        for idx, sep, dK, db, _, C, _ in parts:
+            self.P[np.ix_(sep, sep)] += dK
+            self.bp[sep] += db
+            Bn[r:r + len(idx), sep] = C
+            r += len(idx)
         self.P = 0.5 * (self.P + self.P.T)
-        self.bp[sep] += db
-        Bn = np.zeros((len(idx), len(self.pidx)))
-        Bn[:, sep] = C
+        idx = np.concatenate([p[0] for p in parts])
         f0 = len(self.fidx)
         self.B = np.concatenate([self.B, Bn])
-        self.D = np.concatenate([self.D, D])
-        self.bf = np.concatenate([self.bf, b])
+        self.D = np.concatenate([self.D] + [p[4] for p in parts])
+        self.bf = np.concatenate([self.bf] + [p[6] for p in parts])
         self.fidx = np.concatenate([self.fidx, idx])
         self.pos[idx] = np.arange(f0, f0 + len(idx))
 

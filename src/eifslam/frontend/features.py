@@ -26,7 +26,7 @@ from .split import laplacian_sign
 Array = NDArray[np.float64]
 
 __all__ = ["AheadMatch", "Features", "check_image", "make_detector", "detect_features", "undistort_pixels",
-           "set_opencv_threads", "opencv_threads", "normalise_gain"]
+           "image_noise", "run_contrast_threshold", "set_opencv_threads", "opencv_threads", "normalise_gain"]
 
 
 @dataclass(frozen=True)
@@ -230,8 +230,83 @@ def normalise_gain(gray: np.ndarray, percentile: float = GAIN_PERCENTILE, min_ga
     return cv2.convertScaleAbs(gray, alpha=255.0 / level)
 
 
+def image_noise(gray: np.ndarray) -> float:
+    """Standard deviation of the image noise, grey levels (Immerkaer 1996).
+
+    The image is filtered with the difference of two Laplacians, which cancels every
+    smooth structure up to second order; the mean absolute response of white noise of
+    standard deviation ``s`` is ``6 s sqrt(2 / pi)``. Texture adds to it, so the figure is
+    an upper bound of the noise on a textured image.
+
+    Parameters
+    ----------
+    gray : (H, W) uint8, H, W >= 3.
+
+    Returns
+    -------
+    float
+        The estimated standard deviation, grey levels (0 for a smaller image).
+    """
+    if gray.shape[0] < 3 or gray.shape[1] < 3:
+        return 0.0
+    r = cv2.filter2D(gray.astype(np.float32), cv2.CV_32F, _NOISE_KERNEL)[1:-1, 1:-1]
+    return float(np.sqrt(np.pi / 2.0) / 6.0 * np.mean(np.abs(r)))
+
+
+_NOISE_KERNEL = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+
+WEAK_TEXTURE_FRACTION = 0.25
+"""A run whose first image gives SIFT fewer than this fraction of ``max_features`` at the
+default contrast threshold is weakly textured (:func:`run_contrast_threshold`)."""
+
+
+def run_contrast_threshold(image: np.ndarray, n_keypoints: int, camera: PinholeCamera,
+                           config: FrontEndConfig) -> float:
+    """SIFT's contrast threshold (OpenCV's ``contrastThreshold``, image in ``[0, 1]``) for a
+    whole run, from its first image and the keypoints the default threshold found there.
+
+    OpenCV's default (0.04: 3.4 grey levels per scale of the difference of Gaussians)
+    throws away the extrema of a weakly textured scene (a living room of white walls keeps
+    about 300 of 2000). When the first image keeps fewer than
+    :data:`WEAK_TEXTURE_FRACTION` of ``max_features``, the threshold is lowered to where
+    the per-scale threshold (the threshold over ``sift_octave_layers``) is half the image
+    noise's standard deviation (:func:`image_noise`, at least the 8-bit rounding's
+    :data:`QUANTISATION_NOISE`): the difference of Gaussians averages
+    white noise down about twentyfold, so such an extremum still stands well out of the
+    noise. The run keeps one threshold: deciding per image lowered it on the few blurred
+    frames of a textured run and cost accuracy there (the weak keypoints of one frame are
+    not found again in the next).
+
+    Parameters
+    ----------
+    image : ndarray
+        The run's first image (as for :func:`detect_features`).
+    n_keypoints : int
+        Keypoints the default threshold found on it.
+    camera : PinholeCamera
+    config : FrontEndConfig
+
+    Returns
+    -------
+    float
+        ``config.sift_contrast_threshold``, or the lower threshold from the noise.
+    """
+    default = float(config.sift_contrast_threshold)
+    if n_keypoints >= WEAK_TEXTURE_FRACTION * config.max_features:
+        return default
+    gray = normalise_gain(_gray_and_rgb(check_image(image, camera), config.color_order)[0])
+    noise = max(image_noise(gray), QUANTISATION_NOISE)
+    return float(min(default, 0.5 * config.sift_octave_layers * noise / 255.0))
+
+
+QUANTISATION_NOISE = 1.0 / np.sqrt(12.0)
+"""Standard deviation of the rounding to 8 bits, grey levels: the noise floor of every image
+(a rendered image without sensor noise still has it)."""
+
+
 def detect_features(
-    image: np.ndarray, camera: PinholeCamera, config: FrontEndConfig, detector: "cv2.Feature2D"
+    image: np.ndarray, camera: PinholeCamera, config: FrontEndConfig, detector: "cv2.Feature2D",
+    contrast: float | None = None,
 ) -> Features:
     """Detect and describe keypoints of one image.
 
@@ -244,6 +319,9 @@ def detect_features(
     config : FrontEndConfig
     detector : cv2.Feature2D
         From :func:`make_detector`.
+    contrast : float, optional
+        SIFT's contrast threshold to detect with (:func:`run_contrast_threshold`; default:
+        the detector's own).
 
     Returns
     -------
@@ -260,6 +338,8 @@ def detect_features(
     img = check_image(image, camera)
     gray, rgb = _gray_and_rgb(img, config.color_order)
     gray = normalise_gain(gray)
+    if contrast is not None and detector.getContrastThreshold() != contrast:
+        detector.setContrastThreshold(float(contrast))
     kps, desc = detector.detectAndCompute(gray, None)
     if desc is None or len(kps) == 0:
         d = {"orb": 32, "akaze": 61}.get(str(config.detector), 128)

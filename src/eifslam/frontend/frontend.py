@@ -34,7 +34,7 @@ from ..geometry.camera import PinholeCamera
 from ..errors import EstimatorError, SessionError
 from ..estimation.statedict import check_index, sub, take, take_ids
 from .config import FrontEndConfig
-from .features import AheadMatch, Features, detect_features, make_detector
+from .features import AheadMatch, Features, detect_features, make_detector, run_contrast_threshold
 from .matching import DescriptorIndex, DescriptorMatcher, essential_ransac, homography_ransac
 from .relative_pose import estimate_relative_pose
 from .results import FrameFeatures, FrameResult, Reason, RelativePoseResult
@@ -94,6 +94,8 @@ class FrontEnd:
         self._last_frame = np.zeros(0, np.int64)  # per raw track id: last frame seen in
         self._last_kp = np.zeros(0, np.int64)  # ... and the keypoint index there
         self._ahead_last: Features | None = None  # detect_ahead's last features (its thread's)
+        self._contrast: float | None = None  # SIFT's contrast threshold of the run (see detect)
+        self._contrast_lock = threading.Lock()
 
     # ------------------------------------------------------------------ pickling
     def __getstate__(self) -> dict:
@@ -104,6 +106,7 @@ class FrontEnd:
         state["_matcher"] = None
         state["_index"] = {}  # FLANN indices do not pickle; rebuilt when next needed
         state["_ahead_last"] = None
+        state["_contrast_lock"] = None
         return state
 
     def __setstate__(self, state: dict) -> None:
@@ -112,6 +115,8 @@ class FrontEnd:
         self.__dict__.setdefault("_index", {})
         self.__dict__.pop("_ahead_previous", None)  # a pickle without the ahead matching's state
         self.__dict__.setdefault("_ahead_last", None)
+        self.__dict__.setdefault("_contrast", None)
+        self._contrast_lock = threading.Lock()
         self._local = threading.local()
         self._matcher = self._make_matcher()
 
@@ -138,13 +143,15 @@ class FrontEnd:
         f = fr.feats
         return FrameFeatures(int(frame_id), f.uv, f.uv_raw, ids, self._tracks.in_map(ids), f.colors)
 
-    def descriptors(self, frame_id: int) -> NDArray | None:
-        """Descriptors ``(N, D)`` of a stored frame's keypoints (rows as in :meth:`frame`),
-        as the detector gives them (``float32`` for SIFT), or None when they were dropped
-        (:meth:`forget`)."""
+    def descriptors(self, frame_id: int, rows: NDArray[np.int64] | None = None) -> NDArray | None:
+        """Descriptors ``(N, D)`` of a stored frame's keypoints (rows as in :meth:`frame`;
+        only the keypoints ``rows`` when given), as the detector gives them (``float32``
+        for SIFT), or None when they were dropped (:meth:`forget`)."""
         self._get(frame_id)
         d = self._desc.get(int(frame_id))
-        return None if d is None else self._searchable(d)
+        if d is None:
+            return None
+        return self._searchable(d if rows is None else d[np.asarray(rows, np.int64)])
 
     def _searchable(self, d: NDArray) -> NDArray:
         """Stored descriptors ``d`` as the detector gives them: SIFT's bytes as ``float32``."""
@@ -228,9 +235,11 @@ class FrontEnd:
         """Detect and describe the keypoints of an image, without changing the front end.
 
         Thread-safe: each calling thread uses its own OpenCV detector (made on its first
-        call), and nothing of the front end's state is read but its camera and config, so
-        a worker thread may detect the next frames while another thread adds features
-        (:meth:`add_features`). The same image always gives the same features.
+        call), and nothing of the front end's state is read but its camera, its config and
+        the run's SIFT contrast threshold (decided once, on the first image detected:
+        :func:`~eifslam.frontend.features.run_contrast_threshold`), so a worker thread may
+        detect the next frames while another thread adds features (:meth:`add_features`).
+        The same image always gives the same features within a run.
 
         Parameters
         ----------
@@ -249,7 +258,22 @@ class FrontEnd:
         ImageError
             On unreadable input (None, wrong dtype, shape or size).
         """
-        return detect_features(image, self.camera, self.config, self._thread_detector())
+        detector = self._thread_detector()
+        return detect_features(image, self.camera, self.config, detector, self._run_contrast(image, detector))
+
+    def _run_contrast(self, image: np.ndarray, detector) -> float | None:
+        """SIFT's contrast threshold for the run (None for the other detectors), decided on
+        the first image detected, the run's first frame (:func:`run_contrast_threshold`),
+        and kept in sessions."""
+        if self.config.detector != "sift":
+            return None
+        if self._contrast is None:
+            with self._contrast_lock:
+                if self._contrast is None:
+                    default = float(self.config.sift_contrast_threshold)
+                    n = len(detect_features(image, self.camera, self.config, detector, default))
+                    self._contrast = run_contrast_threshold(image, n, self.camera, self.config)
+        return self._contrast
 
     def detect_ahead(self, image: np.ndarray, match: bool = True) -> Features:
         """:meth:`detect`, plus, with ``match``, what depends on the new frame and the one
@@ -600,8 +624,8 @@ class FrontEnd:
         """What a session keeps, as arrays (:mod:`eifslam.estimation.statedict`): every
         stored frame's keypoints, descriptors and raw track ids (concatenated in frame
         order, ``n_keypoints`` per frame), which frames can still be matched, the track
-        store and where each track was last seen. The detector and matcher are not kept
-        (they are made from the config)."""
+        store, where each track was last seen, and the run's SIFT contrast threshold. The
+        detector and matcher are not kept (they are made from the config)."""
         frames = [self._frames[f] for f in self._order]
 
         def cat(get, tail: tuple, dtype) -> NDArray:
@@ -631,6 +655,7 @@ class FrontEnd:
             "tracks": self._tracks.state_dict(),
             "last_frame": self._last_frame.copy(),
             "last_kp": self._last_kp.copy(),
+            "sift_contrast": np.array([] if self._contrast is None else [self._contrast], float),
         }
 
     def load_state_dict(self, d) -> None:
@@ -682,4 +707,8 @@ class FrontEnd:
                 self._desc[fid] = feats.descriptors
         self._order = order.tolist()
         self._tracks, self._last_frame, self._last_kp = tracks, last_f.copy(), last_k.copy()
+        contrast = take(d, "sift_contrast", np.float64, (None,)) if "sift_contrast" in d else np.zeros(0)
+        if len(contrast) > 1 or np.any(contrast <= 0):
+            raise SessionError("array 'sift_contrast' must hold at most one positive threshold")
+        self._contrast = float(contrast[0]) if len(contrast) else None
 

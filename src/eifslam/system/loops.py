@@ -338,25 +338,28 @@ class LoopCloser:
 
         filt, fe, cfg = self.filter, self.frontend, self.config
         stored = set(fe.frame_ids)
-        span, tids, descs = [], [], []
-        for f in range(lo, hi + 1):  # the old map features seen around the candidate, with descriptors
-            d = fe.descriptors(f) if f in stored and filt.layout.has_pose(f) else None
-            if d is not None:
-                span.append(f)
-                tids.append(fe.frame(f).track_ids)
-                descs.append(d)
-        if not tids:
+        none = np.zeros(0, np.int64)
+        span = [f for f in range(lo, hi + 1)  # the old frames around the candidate, with descriptors
+                if f in stored and filt.layout.has_pose(f) and fe.descriptors(f, none) is not None]
+        if not span:
             self.rejected.append((k, j, "no old frame with descriptors"))
             return None
+        tids = [fe.frame(f).track_ids for f in span]
         t_all = np.concatenate(tids)
-        has = filt.layout.has_features(t_all)
+        has = np.flatnonzero(filt.layout.has_features(t_all))
         fids, first = np.unique(t_all[has], return_index=True)  # one descriptor per feature: its first
         keep = ~np.isin(fids, fe.frame(k).track_ids)
         if keep.sum() < cfg.loops.min_inliers:
             self.rejected.append((k, j, "too few old map features"))
             return None
         fids = fids[keep].astype(np.int64)
-        D = np.concatenate(descs)[has][first[keep]]
+        # the descriptors of those keypoints alone, frame by frame (not every keypoint of the span)
+        at = has[first[keep]]  # positions in t_all
+        starts = np.cumsum([0] + [len(t) for t in tids])
+        which = np.searchsorted(starts, at, side="right") - 1
+        rows = [np.flatnonzero(which == n) for n in range(len(span))]
+        D = np.concatenate([fe.descriptors(f, at[r] - starts[n]) for n, (f, r) in enumerate(zip(span, rows))])
+        D = D[np.argsort(np.concatenate(rows))]  # back in the order of fids
         fk = fe.frame(k)
         dk = fe.descriptors(k)
         # match first, the old frame (cheap) and then the place's map: most candidates fail

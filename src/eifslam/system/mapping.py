@@ -11,7 +11,6 @@ filter through their public methods only.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from itertools import chain
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,6 +21,7 @@ from ..estimation.statedict import take, take_ids
 from ..geometry.camera import PinholeCamera
 from ..geometry.rotations import quat_normalize
 from .config import SlamConfig
+from .observations import TrackObservations
 
 Array = NDArray[np.float64]
 
@@ -101,9 +101,9 @@ class Mapper:
         self.config = config
         self.frontend = frontend
         self.filter = backend
-        self._track_obs: dict[int, list[tuple[int, Array]]] = {}
-        self._track_frames: dict[int, set[int]] | None = {}  # per track: frames in _track_obs (None: derive)
-        self._colors: dict[int, NDArray[np.uint8]] = {}
+        self._obs = TrackObservations()  # every keyframe's map observations, per track
+        self._colors = np.zeros((0, 3), np.uint8)  # per track id: its first colour
+        self._colored = np.zeros(0, bool)  # ... and whether it has one
         self._deferred: list[FeatureObservations] = []  # Zm of features older than the local map
         self._deferred_for = 0  # keyframes the oldest of them has waited
 
@@ -111,14 +111,10 @@ class Mapper:
     def state_dict(self) -> dict:
         """What a session keeps: every recorded observation (track, frame, pixel; per
         track in recording order) and the feature colours."""
-        obs = [(t, k, u) for t, hist in self._track_obs.items() for k, u in hist]
-        return {
-            "obs_track": np.array([t for t, _, _ in obs], np.int64),
-            "obs_frame": np.array([k for _, k, _ in obs], np.int64),
-            "obs_uv": np.array([u for _, _, u in obs], float).reshape(-1, 2),
-            "color_ids": np.array(list(self._colors), np.int64),
-            "colors": np.array(list(self._colors.values()), np.uint8).reshape(-1, 3),
-        }
+        tracks, frames, uv = self._obs.arrays()
+        ci = np.flatnonzero(self._colored)
+        return {"obs_track": tracks, "obs_frame": frames, "obs_uv": uv,
+                "color_ids": ci.astype(np.int64), "colors": self._colors[ci].copy()}
 
     def load_state_dict(self, d) -> None:
         """Restore :meth:`state_dict`, checked (:class:`~eifslam.errors.SessionError`)."""
@@ -126,34 +122,25 @@ class Mapper:
         fr, uv = take_ids(d, "obs_frame", len(tr)), take(d, "obs_uv", np.float64, (len(tr), 2))
         ci = take_ids(d, "color_ids")
         col = take(d, "colors", np.uint8, (len(ci), 3))
-        self._track_obs = {}
-        for t, k, u in zip(tr.tolist(), fr.tolist(), uv):
-            self._track_obs.setdefault(t, []).append((k, u.copy()))
-        self._track_frames = None
-        self._colors = {t: c.copy() for t, c in zip(ci.tolist(), col)}
+        self._obs = TrackObservations.from_arrays(tr, fr, uv)
+        n = int(ci.max()) + 1 if len(ci) else 0
+        self._colors, self._colored = np.zeros((n, 3), np.uint8), np.zeros(n, bool)
+        self._colors[ci], self._colored[ci] = col, True
 
     # -- queries ------------------------------------------------------------------
     def colors(self, track_ids) -> NDArray[np.uint8]:
         """RGB colours ``(F, 3)`` of map features (grey for a feature never coloured)."""
-        return np.array([self._colors.get(int(i), _GREY) for i in track_ids], np.uint8).reshape(-1, 3)
+        ids = np.asarray(track_ids, np.int64).reshape(-1)
+        out = np.tile(_GREY, (len(ids), 1))
+        inside = np.flatnonzero((ids >= 0) & (ids < len(self._colored)))
+        has = inside[self._colored[ids[inside]]]
+        out[has] = self._colors[ids[has]]
+        return out
 
     def covisible(self, track_ids) -> dict[int, int]:
         """Frames that observed any of the given tracks (recorded map observations), with
         how many of the tracks each observed: the covisibility of a frame's map tracks."""
-        frames = self._frames_per_track()
-        none: set[int] = set()
-        seen = np.fromiter(chain.from_iterable(frames.get(t, none) for t in np.asarray(track_ids, np.int64)
-                                               .reshape(-1).tolist()), np.int64)
-        f, n = np.unique(seen, return_counts=True)
-        return dict(zip(f.tolist(), n.tolist()))
-
-    def _frames_per_track(self) -> dict[int, set[int]]:
-        """The frames of each track's recorded observations (kept beside them, derived
-        once after loading a session)."""
-        tf = self.__dict__.get("_track_frames")
-        if tf is None:
-            tf = self._track_frames = {t: {j for j, _ in h} for t, h in self._track_obs.items()}
-        return tf
+        return self._obs.covisible(np.unique(np.asarray(track_ids, np.int64).reshape(-1)))
 
     def record_loop(self, k: int, track_ids, uv: Array) -> None:
         """Record the ``Zm`` a verified loop fused into frame *k* (old map features, found
@@ -169,37 +156,31 @@ class Mapper:
         uv : (M, 2)
             Their pixels in frame *k* (undistorted).
         """
-        uv = np.asarray(uv, float).reshape(-1, 2)
-        for t, u in zip(np.asarray(track_ids, np.int64).reshape(-1).tolist(), uv):
-            hist = self._track_obs.setdefault(t, [])
-            if not any(j == k for j, _ in hist):
-                hist.append((int(k), u.copy()))
-                self._frames_per_track().setdefault(t, set()).add(int(k))
+        self._obs.add(int(k), np.asarray(track_ids, np.int64).reshape(-1), np.asarray(uv, float).reshape(-1, 2),
+                      only_new=True)
 
     def forget_loop(self, k: int, track_ids) -> None:
         """Take back :meth:`record_loop`: frame *k* no longer observes the old map features
         ``track_ids (M,)`` (a loop taken back)."""
-        frames = self._frames_per_track()
-        for t in np.asarray(track_ids, np.int64).reshape(-1).tolist():
-            hist = self._track_obs.get(t)
-            if hist is not None:
-                self._track_obs[t] = [(j, u) for j, u in hist if j != int(k)]
-            if t in frames:
-                frames[t].discard(int(k))
+        self._obs.forget(int(k), np.asarray(track_ids, np.int64).reshape(-1))
 
     # -- per frame ----------------------------------------------------------------
     def record_observations(self, k: int) -> tuple[NDArray[np.int64], Array]:
         """Store frame *k*'s map observations per track (and first colours); return the
         frame's ``Zm``: track ids ``(M,)`` and pixels ``(M, 2)``."""
         ids, uv = self.frontend.map_observations(k)
+        self._obs.add(int(k), ids, uv)
         ff = self.frontend.frame(k)
-        col = dict(zip(ff.track_ids.tolist(), ff.colors))
-        frames = self._frames_per_track()
-        for t, u in zip(ids.tolist(), uv):
-            self._track_obs.setdefault(t, []).append((k, u))
-            frames.setdefault(t, set()).add(k)
-            if t not in self._colors and t in col:
-                self._colors[t] = np.asarray(col[t], np.uint8)
+        t = np.asarray(ff.track_ids, np.int64)
+        ok = t >= 0
+        t, c = t[ok], np.asarray(ff.colors, np.uint8)[ok]
+        if len(t):
+            n = max(len(self._colored), int(t.max()) + 1)
+            if n > len(self._colored):
+                self._colors = np.concatenate([self._colors, np.zeros((n - len(self._colors), 3), np.uint8)])
+                self._colored = np.concatenate([self._colored, np.zeros(n - len(self._colored), bool)])
+            first = ~self._colored[t]
+            self._colors[t[first]], self._colored[t[first]] = c[first], True
         return ids, uv
 
     def reobserve(self, k: int, p: Array, q: Array) -> int:
@@ -314,20 +295,28 @@ class Mapper:
         poses, feats, uvs = [np.full(int(known.sum()), k)], [ids[known]], [uv[known]]
         new_ids, new_X = [], []
         # first observation from a known pose of every unknown track, grouped by that pose
-        cand: dict[int, list[tuple[int, Array, Array, list]]] = {}
-        for t, u in zip(ids[~known].tolist(), uv[~known]):
-            hist = [(j, v) for j, v in self._track_obs.get(t, []) if j != k and filt.layout.has_pose(j)]
-            if hist:
-                cand.setdefault(hist[0][0], []).append((t, hist[0][1], u, hist))
+        unknown, uv_unknown = ids[~known], uv[~known]
+        owner, rows = self._obs.rows_of(unknown)  # each unknown track's history, in order
+        hf = self._obs.frames(rows)
+        posed = np.isin(hf, np.asarray(filt.layout.pose_ids, np.int64)) & (hf != k)
+        owner, rows, hf = owner[posed], rows[posed], hf[posed]
+        hu = self._obs.pixels(rows)
+        starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]]) if len(owner) else np.zeros(0, np.int64)
+        ends = np.r_[starts[1:], len(owner)]
+        cand: dict[int, list[tuple[int, Array, Array, tuple[int, int]]]] = {}
+        for a, b in zip(starts.tolist(), ends.tolist()):
+            n = int(owner[a])
+            # the first observation from a known pose of the track, grouped by that pose
+            cand.setdefault(int(hf[a]), []).append((int(unknown[n]), hu[a], uv_unknown[n], (a, b)))
         tri: list[tuple[int, Array, NDArray[np.int64], Array]] = []  # (track, X, frames, uv)
         for j, items in cand.items():
             p_j, q_j = filt.pose(j)
             uv_j = np.array([it[1] for it in items])
             uv_k = np.array([it[2] for it in items])
             X, par, ok = triangulate(p_j, q_j, uv_j, p_k, q_k, uv_k, self.camera)
-            for (t, _, u, hist), Xt, good in zip(items, X, ok & (par >= cfg.mapping.feature_parallax_deg)):
+            for (t, _, u, (a, b)), Xt, good in zip(items, X, ok & (par >= cfg.mapping.feature_parallax_deg)):
                 if good:
-                    tri.append((t, Xt, np.array([jj for jj, _ in hist] + [k]), np.array([vv for _, vv in hist] + [u])))
+                    tri.append((t, Xt, np.append(hf[a:b], k), np.vstack([hu[a:b], u[None]])))
         if tri:
             counts = np.array([len(fr) for _, _, fr, _ in tri])
             frames = np.concatenate([fr for _, _, fr, _ in tri])

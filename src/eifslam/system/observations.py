@@ -1,0 +1,153 @@
+"""The map observations of every keyframe, per track, in flat arrays.
+
+:class:`TrackObservations` keeps each recorded observation (track, frame, pixel) as one row
+of growing NumPy arrays, with a link from each row to the track's previous row: appending
+costs constant time per observation, and the history of many tracks at once (the frames
+that saw them, in recording order) is a walk along the links, one vectorised step per
+observation of the longest history. About 40 bytes an observation: a tuple and a NumPy
+view per observation in a dictionary of lists took over 300 (a third of a megabyte per
+keyframe on a walking camera).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+__all__ = ["TrackObservations"]
+
+
+def _grown(a: np.ndarray, n: int, fill) -> np.ndarray:
+    """``a`` with room for at least ``n`` rows (capacity doubled), new rows ``fill``."""
+    if n <= len(a):
+        return a
+    out = np.full((max(n, 2 * len(a), 64),) + a.shape[1:], fill, a.dtype)
+    out[: len(a)] = a
+    return out
+
+
+class TrackObservations:
+    """Recorded observations of tracks by frames, with per-track history queries.
+
+    Track ids are non-negative integers (the front end's); a track has at most one
+    observation per frame.
+    """
+
+    def __init__(self) -> None:
+        self.n = 0  # rows used
+        self._frame = np.zeros(0, np.int64)
+        self._track = np.zeros(0, np.int64)
+        self._uv = np.zeros((0, 2))
+        self._prev = np.zeros(0, np.int64)  # the track's previous row, -1: none
+        self._alive = np.zeros(0, bool)  # False: taken back (forget)
+        self._last = np.zeros(0, np.int64)  # per track id: its last row, -1: none
+
+    def __len__(self) -> int:
+        """Observations kept (taken-back ones excluded)."""
+        return int(self._alive[: self.n].sum())
+
+    # -- recording ---------------------------------------------------------------------
+    def add(self, frame: int, tracks: IntArray, uv: Array, only_new: bool = False) -> NDArray[np.bool_]:
+        """Record that ``frame`` observed ``tracks`` ``(M,)`` at pixels ``uv`` ``(M, 2)``.
+
+        With ``only_new``, a track whose last observation is already of ``frame`` is left
+        as it is. Returns which of ``tracks`` were recorded ``(M,)``.
+        """
+        tracks = np.asarray(tracks, np.int64).reshape(-1)
+        uv = np.asarray(uv, float).reshape(-1, 2)
+        if len(tracks) and tracks.min() < 0:
+            raise ValueError("track ids must be non-negative")
+        self._last = _grown(self._last, int(tracks.max()) + 1 if len(tracks) else 0, -1)
+        prev = self._last[tracks]
+        new = np.ones(len(tracks), bool)
+        if only_new:
+            has = prev >= 0
+            new[has] = ~((self._frame[prev[has]] == frame) & self._alive[prev[has]])
+        tracks, uv, prev = tracks[new], uv[new], prev[new]
+        m = len(tracks)
+        a, b = self.n, self.n + m
+        self._frame = _grown(self._frame, b, -1)
+        self._track = _grown(self._track, b, -1)
+        self._uv = _grown(self._uv, b, 0.0)
+        self._prev = _grown(self._prev, b, -1)
+        self._alive = _grown(self._alive, b, False)
+        self._frame[a:b], self._track[a:b], self._uv[a:b] = frame, tracks, uv
+        self._prev[a:b], self._alive[a:b] = prev, True
+        self._last[tracks] = np.arange(a, b)
+        self.n = b
+        return new
+
+    def forget(self, frame: int, tracks: IntArray) -> None:
+        """Take back the observations of ``tracks`` by ``frame`` (kept as dead rows)."""
+        owner, rows = self.rows_of(tracks)
+        self._alive[rows[self._frame[rows] == frame]] = False
+
+    # -- queries ---------------------------------------------------------------------
+    def rows_of(self, tracks: IntArray) -> tuple[IntArray, IntArray]:
+        """The live observations of ``tracks`` ``(M,)``: for each, the index into
+        ``tracks`` it belongs to and its row, grouped by that index and in recording order
+        within a track (``(R,)``, ``(R,)``)."""
+        tracks = np.asarray(tracks, np.int64).reshape(-1)
+        inside = (tracks >= 0) & (tracks < len(self._last))
+        owner = np.flatnonzero(inside)
+        cur = self._last[tracks[inside]]
+        owners, rows = [], []
+        while len(cur):
+            m = cur >= 0
+            owner, cur = owner[m], cur[m]
+            owners.append(owner)
+            rows.append(cur)
+            cur = self._prev[cur]
+        if not rows:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        owner, row = np.concatenate(owners), np.concatenate(rows)
+        live = self._alive[row]
+        owner, row = owner[live], row[live]
+        order = np.lexsort((row, owner))
+        return owner[order], row[order]
+
+    def frames(self, rows: IntArray) -> IntArray:
+        """Frames of observation rows ``(R,)``."""
+        return self._frame[rows]
+
+    def pixels(self, rows: IntArray) -> Array:
+        """Pixels ``(R, 2)`` of observation rows."""
+        return self._uv[rows]
+
+    def covisible(self, tracks: IntArray) -> dict[int, int]:
+        """Frames that observed any of ``tracks``, with how many of them each observed."""
+        _, rows = self.rows_of(tracks)
+        f, c = np.unique(self._frame[rows], return_counts=True)
+        return dict(zip(f.tolist(), c.tolist()))
+
+    # -- sessions --------------------------------------------------------------------
+    def arrays(self) -> tuple[IntArray, IntArray, Array]:
+        """Tracks, frames ``(N,)`` and pixels ``(N, 2)`` of the live observations, in
+        recording order (what :meth:`from_arrays` takes back)."""
+        live = np.flatnonzero(self._alive[: self.n])
+        return self._track[live].copy(), self._frame[live].copy(), self._uv[live].copy()
+
+    @classmethod
+    def from_arrays(cls, tracks: IntArray, frames: IntArray, uv: Array) -> "TrackObservations":
+        """The store holding these observations ``(N,)``, ``(N,)``, ``(N, 2)``, each track's
+        in the order given."""
+        tracks = np.asarray(tracks, np.int64).reshape(-1)
+        frames = np.asarray(frames, np.int64).reshape(-1)
+        uv = np.asarray(uv, float).reshape(-1, 2)
+        if len(tracks) and tracks.min() < 0:
+            raise ValueError("track ids must be non-negative")
+        obs, n = cls(), len(tracks)
+        order = np.lexsort((np.arange(n), tracks))  # by track, then as given
+        prev = np.full(n, -1, np.int64)
+        same = tracks[order][1:] == tracks[order][:-1]
+        prev[order[1:][same]] = order[:-1][same]
+        last = np.full(int(tracks.max()) + 1 if n else 0, -1, np.int64)
+        end = np.append(~same, True) if n else np.zeros(0, bool)  # each track's last row
+        last[tracks[order][end]] = order[end]
+        obs.n = n
+        obs._frame, obs._track, obs._uv = frames.copy(), tracks.copy(), uv.copy()
+        obs._prev, obs._alive, obs._last = prev, np.ones(n, bool), last
+        return obs
