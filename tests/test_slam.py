@@ -198,8 +198,6 @@ def test_runs_repeat_with_the_same_seed_and_bad_settings_are_named():
     np.testing.assert_array_equal(run(), run())
     with pytest.raises(ConfigError, match="reobserve_radius_px"):
         SlamConfig.from_dict({"experimental": {"reobserve_radius_px": -1}})
-    with pytest.raises(ConfigError, match="init_parallax_deg"):
-        SlamConfig.from_dict({"experimental": {"init_parallax_deg": 95}})
 
 
 def test_one_set_of_defaults_and_string_enums():

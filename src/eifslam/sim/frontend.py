@@ -237,12 +237,14 @@ class SyntheticFrontEnd:
 
         ``frontend.sigma_px`` is the simulated pixel noise and ``tracking.scale_distance`` the
         true distance between scene frames 0 and 1 (the pair that initialises the map when
-        frame 1 has ``experimental.init_parallax_deg``), so estimates compare with the truth
+        ``experimental.init_map_features`` is 0: frame 1 initialises it whatever features it
+        gives), so estimates compare with the truth
         directly; ``sections`` (e.g. ``mapping={"min_feature_parallax_deg": 3.0}``) are
         applied last.
         """
         from ..system.config import SlamConfig
 
         base = base or SlamConfig()
-        cfg = base.replace(frontend={"sigma_px": self.sigma_px}, tracking={"scale_distance": self.true_distance(0, 1)})
+        cfg = base.replace(frontend={"sigma_px": self.sigma_px}, tracking={"scale_distance": self.true_distance(0, 1)},
+                           experimental={"init_map_features": 0})
         return cfg.replace(**sections) if sections else cfg

@@ -189,8 +189,10 @@ class ExperimentalConfig:
     relative_gate_chi2: float | None = setting(50.0, "a ZR/ZT whose normalised innovation squared (5 DOF) "
                                                      "exceeds this is not fused (null: every one)",
                                                Real(0.0, 1e9, lo_open=True, none=True))
-    init_parallax_deg: float = setting(0.5, "median parallax of the pair that initialises the map, degrees",
-                                       Real(0.0, 90.0, hi_open=True))
+    init_map_features: int | None = setting(
+        None, "map features the first baseline must give the map (null: tracking's min_map_features; 0: the "
+              "first relative pose that passes, as simulations whose scale is the distance of frames 0 and 1 "
+              "need)", Int(0, none=True))
     reobserve_radius_px: float | None = setting(
         None, "lost map features are searched again within this radius of their projection, pixels (0: off; "
               "null: 15 for SIFT, off for binary descriptors)", Real(0.0, 1e4, none=True))

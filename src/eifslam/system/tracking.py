@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from ..estimation.initialisation import pose_from_relative
 from ..estimation.measurements import pack_relative, unpack_relative
 from ..estimation.statedict import sub, take_float
+from ..frontend.config import FrontEndConfig
 from ..frontend.results import RelativePoseResult
 from ..geometry.camera import PinholeCamera
 from .algorithm1 import OnMap, algorithm1
@@ -112,11 +113,41 @@ class Tracker:
             timings["relative_pose"] = timings.get("relative_pose", 0.0) + r.timings_ms.get("relative_pose", 0.0)
             timings["covariance"] = timings.get("covariance", 0.0) + r.timings_ms.get("covariance", 0.0)
             last = r
-            if r.ok and self.filter.layout.n_poses == 1 and r.parallax_deg < cfg.experimental.init_parallax_deg:
+            need = cfg.experimental.init_map_features
+            need = cfg.tracking.min_map_features if need is None else need
+            if r.ok and self.filter.layout.n_poses == 1 and (r.parallax_deg < FrontEndConfig.min_parallax_deg or (
+                    need and self.first_map_size(r) < need)):
                 continue  # too narrow a baseline to initialise the map on
             if r.ok:
                 return r, r
         return None, last
+
+    def first_map_size(self, r: RelativePoseResult) -> int:
+        """How many map features the relative pose ``r`` of the first baseline would give
+        the map: the ``Ωm`` tracks both frames see whose rays, the rotation ``ZR`` taken
+        out, span ``MappingConfig.feature_parallax_deg`` (what makes a track a feature).
+
+        The first baseline is taken only when this reaches ``TrackingConfig.min_map_features``
+        (what the next frames need to be placed on the map; ``experimental.init_map_features``
+        when set): on a slowly moving camera
+        the relative pose passes its own parallax test long before any track has the
+        parallax of a feature, and a first map without features leaves the next frames
+        nothing but relative poses on short baselines (ICL-NUIM's living room: about 17
+        of the 25 frames after such a start were lost). The frames before wait and are
+        placed once the map exists."""
+        from ..geometry.rotations import quat_to_rotmat
+
+        m = r.measurement
+        ids_i, uv_i = self.frontend.map_observations(m.i)
+        ids_j, uv_j = self.frontend.map_observations(m.j)
+        _, a, b = np.intersect1d(ids_i, ids_j, return_indices=True)
+        if not len(a):
+            return 0
+        bi = self.camera.bearing(uv_i[a])
+        bj = self.camera.bearing(uv_j[b]) @ quat_to_rotmat(m.q_ij).T  # in frame i
+        c = np.sum(bi * bj, axis=1) / (np.linalg.norm(bi, axis=1) * np.linalg.norm(bj, axis=1))
+        angle = np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+        return int(np.sum(angle >= self.config.mapping.feature_parallax_deg))
 
     # -- the known map ---------------------------------------------------------------
     def known_map(self, k: int) -> tuple[NDArray[np.bool_], Array, Array, Callable[[NDArray[np.int64]], Array],
