@@ -82,7 +82,7 @@ class TrackObservations:
 
     def forget(self, frame: int, tracks: IntArray) -> None:
         """Take back the observations of ``tracks`` by ``frame`` (kept as dead rows)."""
-        owner, rows = self.rows_of(tracks)
+        _, rows = self.rows_of(tracks)
         self._alive[rows[self._frame[rows] == frame]] = False
 
     # -- queries ---------------------------------------------------------------------
