@@ -8,8 +8,8 @@ the triplets are summed into a small CSC matrix of recent additions once
 what waits when somebody needs ``I`` (recovery, plots). A ``Zm`` leaves 42 to 100 triplets
 (16 bytes each) but about 50 non-zeros, so the waiting triplets never take more than
 32 MB, the recent part a fraction of the main one, and a merge's temporaries are the main
-matrix, the recent part and their sum (letting every triplet wait until it outnumbered
-twice the matrix's non-zeros and summing them at once took several times the matrix);
+matrix, the recent part and their sum (letting every triplet wait until it outnumbers
+twice the matrix's non-zeros and summing them at once takes several times the matrix);
 each entry is summed into the main matrix about ``1 / MERGE_FRACTION`` times, so the
 cost stays proportional to the non-zeros added.
 """

@@ -304,7 +304,7 @@ class ActiveWindow:
         blocks ``D`` (``(g, 3, 3)``), coupling ``C`` (``(3 g, len(sep))``) to the active poses
         at window positions ``sep`` and vector ``b``; the ``sep`` block of the window gets
         ``dK``, ``db`` back. The rows of every part join the window in one copy (a copy
-        per part made re-activation cost the window's size times the parts)."""
+        per part would make a re-activation cost the window's size times the parts)."""
         if not parts:
             return
         rows = sum(len(p[0]) for p in parts)

@@ -273,8 +273,8 @@ def run_contrast_threshold(image: np.ndarray, n_keypoints: int, camera: PinholeC
     noise's standard deviation (:func:`image_noise`, at least the 8-bit rounding's
     :data:`QUANTISATION_NOISE`): the difference of Gaussians averages
     white noise down about twentyfold, so such an extremum still stands well out of the
-    noise. The run keeps one threshold: deciding per image lowered it on the few blurred
-    frames of a textured run and cost accuracy there (the weak keypoints of one frame are
+    noise. The run keeps one threshold: deciding per image lowers it on the few blurred
+    frames of a textured run and costs accuracy there (the weak keypoints of one frame are
     not found again in the next).
 
     Parameters

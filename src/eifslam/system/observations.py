@@ -4,9 +4,9 @@
 of growing NumPy arrays, with a link from each row to the track's previous row: appending
 costs constant time per observation, and the history of many tracks at once (the frames
 that saw them, in recording order) is a walk along the links, one vectorised step per
-observation of the longest history. About 40 bytes an observation: a tuple and a NumPy
-view per observation in a dictionary of lists took over 300 (a third of a megabyte per
-keyframe on a walking camera).
+observation of the longest history. About 40 bytes an observation, where a tuple and a
+NumPy view per observation in a dictionary of lists take over 300 (a third of a megabyte
+per keyframe on a walking camera).
 """
 
 from __future__ import annotations

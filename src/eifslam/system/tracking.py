@@ -133,7 +133,7 @@ class Tracker:
         the relative pose passes its own parallax test long before any track has the
         parallax of a feature, and a first map without features leaves the next frames
         nothing but relative poses on short baselines (ICL-NUIM's living room: about 17
-        of the 25 frames after such a start were lost). The frames before wait and are
+        of the 25 frames after such a start are lost). The frames before wait and are
         placed once the map exists."""
         from ..geometry.rotations import quat_to_rotmat
 
