@@ -34,16 +34,36 @@ class TrackObservations:
 
     Track ids are non-negative integers (the front end's); a track has at most one
     observation per frame.
+
+    Parameters
+    ----------
+    tracks, frames : (N,) int, optional
+        Observations to start with (a session's, :meth:`arrays`), each track's in
+        recording order.
+    uv : (N, 2), optional
+        Their pixels.
     """
 
-    def __init__(self) -> None:
-        self.n = 0  # rows used
-        self._frame = np.zeros(0, np.int64)
-        self._track = np.zeros(0, np.int64)
-        self._uv = np.zeros((0, 2))
-        self._prev = np.zeros(0, np.int64)  # the track's previous row, -1: none
-        self._alive = np.zeros(0, bool)  # False: taken back (forget)
-        self._last = np.zeros(0, np.int64)  # per track id: its last row, -1: none
+    def __init__(self, tracks: IntArray | None = None, frames: IntArray | None = None, uv: Array | None = None
+                 ) -> None:
+        tracks = np.zeros(0, np.int64) if tracks is None else np.asarray(tracks, np.int64).reshape(-1)
+        frames = np.zeros(0, np.int64) if frames is None else np.asarray(frames, np.int64).reshape(-1)
+        uv = np.zeros((0, 2)) if uv is None else np.asarray(uv, float).reshape(-1, 2)
+        if not len(tracks) == len(frames) == len(uv):
+            raise ValueError("tracks, frames and pixels must have one row per observation")
+        if len(tracks) and tracks.min() < 0:
+            raise ValueError("track ids must be non-negative")
+        n = len(tracks)
+        order = np.lexsort((np.arange(n), tracks))  # by track, then as given
+        same = tracks[order][1:] == tracks[order][:-1]
+        end = np.append(~same, True) if n else np.zeros(0, bool)  # each track's last row
+        self.n = n  # rows used
+        self._frame, self._track, self._uv = frames.copy(), tracks.copy(), uv.copy()
+        self._prev = np.full(n, -1, np.int64)  # the track's previous row, -1: none
+        self._prev[order[1:][same]] = order[:-1][same]
+        self._alive = np.ones(n, bool)  # False: taken back (forget)
+        self._last = np.full(int(tracks.max()) + 1 if n else 0, -1, np.int64)  # per track id: its last row
+        self._last[tracks[order][end]] = order[end]
 
     def __len__(self) -> int:
         """Observations kept (taken-back ones excluded)."""
@@ -133,21 +153,5 @@ class TrackObservations:
     @classmethod
     def from_arrays(cls, tracks: IntArray, frames: IntArray, uv: Array) -> "TrackObservations":
         """The store holding these observations ``(N,)``, ``(N,)``, ``(N, 2)``, each track's
-        in the order given."""
-        tracks = np.asarray(tracks, np.int64).reshape(-1)
-        frames = np.asarray(frames, np.int64).reshape(-1)
-        uv = np.asarray(uv, float).reshape(-1, 2)
-        if len(tracks) and tracks.min() < 0:
-            raise ValueError("track ids must be non-negative")
-        obs, n = cls(), len(tracks)
-        order = np.lexsort((np.arange(n), tracks))  # by track, then as given
-        prev = np.full(n, -1, np.int64)
-        same = tracks[order][1:] == tracks[order][:-1]
-        prev[order[1:][same]] = order[:-1][same]
-        last = np.full(int(tracks.max()) + 1 if n else 0, -1, np.int64)
-        end = np.append(~same, True) if n else np.zeros(0, bool)  # each track's last row
-        last[tracks[order][end]] = order[end]
-        obs.n = n
-        obs._frame, obs._track, obs._uv = frames.copy(), tracks.copy(), uv.copy()
-        obs._prev, obs._alive, obs._last = prev, np.ones(n, bool), last
-        return obs
+        in the order given (what :meth:`arrays` gives)."""
+        return cls(tracks, frames, uv)
