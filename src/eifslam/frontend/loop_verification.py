@@ -33,7 +33,8 @@ from .matching import DescriptorMatcher, essential_ransac
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["PlaceCheck", "chi2_radius", "match_to_frame", "match_to_map", "min_inliers", "verify_place"]
+__all__ = ["FivePoint", "PlaceCheck", "chi2_radius", "five_point", "match_to_frame", "match_to_map", "min_inliers",
+           "verify_place"]
 
 #: 99% quantile of chi-square with 2 degrees of freedom (a pixel residual).
 CHI2_2DOF_99 = 9.21
@@ -166,6 +167,55 @@ def match_to_frame(camera: PinholeCamera, matcher: DescriptorMatcher, desc_k: ND
     """
     return _matched(matcher, desc_k, desc_j, floor,
                     lambda n: _frame_required(camera, n, sigma_px, floor, alpha, iterations))
+
+
+@dataclass(frozen=True)
+class FivePoint:
+    """The five-point relation of the current frame *k* to an old frame *j* from their direct
+    matches (:func:`five_point`).
+
+    Attributes
+    ----------
+    inliers, required : int
+        Essential-matrix inliers and the count chance does not explain (:func:`min_inliers`).
+    R_kj : (3, 3) or None
+        Rotation from camera *k*'s frame to camera *j*'s (``x_j = R_kj x_k``), when the
+        inliers reach the count.
+    parallax_deg : float
+        Median angle, degrees, between the inliers' two rays once ``R_kj`` is taken out: below
+        a couple of degrees the essential matrix is degenerate and ``R_kj`` undetermined.
+    """
+
+    inliers: int
+    required: int
+    R_kj: Array | None = None
+    parallax_deg: float = 0.0
+
+
+def five_point(camera: PinholeCamera, uv_k: Array, uv_j: Array, direct: tuple[IntArray, IntArray], sigma_px: float,
+               floor: int = 25, alpha: float = 1e-6, iterations: int = 1000) -> FivePoint:
+    """The essential matrix of the direct matches ``direct`` (indices into ``uv_k`` and
+    ``uv_j``, undistorted pixels (N, 2)) with the epipolar band of the chi-square radius, its
+    inlier count against :func:`min_inliers`, and, when that is reached, the relative rotation
+    and the inliers' parallax. Cheap next to the map match and the PnP of
+    :func:`verify_place`, so a caller can test the rotation first."""
+    ja, jb = (np.asarray(d, np.int64) for d in direct)
+    need = _frame_required(camera, len(ja), sigma_px, floor, alpha, iterations)
+    if len(ja) < need:
+        return FivePoint(0, need)
+    E, inl = essential_ransac(uv_k[ja], uv_j[jb], camera.K, chi2_radius(sigma_px), 0.9999)
+    n = int(inl.sum()) if E is not None else 0
+    if n < need:
+        return FivePoint(n, need)
+    _, R, _, _ = cv2.recoverPose(E[:3, :3], uv_k[ja][inl], uv_j[jb][inl], camera.K)
+    Kinv = np.linalg.inv(camera.K)
+
+    def rays(uv: Array) -> Array:
+        b = np.c_[uv, np.ones(len(uv))] @ Kinv.T
+        return b / np.linalg.norm(b, axis=1, keepdims=True)
+
+    cos = np.sum(rays(uv_k[ja][inl]) @ R.T * rays(uv_j[jb][inl]), axis=1)
+    return FivePoint(n, need, R, float(np.degrees(np.median(np.arccos(np.clip(cos, -1.0, 1.0))))))
 
 
 def verify_place(camera: PinholeCamera, matcher: DescriptorMatcher, uv_k: Array, desc_k: NDArray,

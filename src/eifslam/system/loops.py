@@ -333,22 +333,38 @@ class LoopCloser:
         return joined if joined else set(covis)
 
     def _verify_and_fuse(self, k: int, j: int, score: float, lo: int, hi: int) -> LoopClosure | None:
-        from ..frontend.loop_verification import match_to_frame, match_to_map, verify_place
+        from ..frontend.loop_verification import five_point, match_to_frame, match_to_map, verify_place
         from ..geometry.rotations import quat_conjugate, quat_log, quat_multiply, quat_to_rotmat
 
         filt, fe, cfg = self.filter, self.frontend, self.config
+        fk, dk, dj = fe.frame(k), fe.descriptors(k), fe.descriptors(j)
+        if dj is None:
+            self.rejected.append((k, j, "no old frame with descriptors"))
+            return None
+        # the cheap tests first: the direct matches to the old frame, their count and their
+        # rotation; most candidates fail here. Then the place's map, whose old
+        # (marginalised) features need the complete estimate, a back substitution over the
+        # whole state
+        direct = match_to_frame(self.camera, fe.matcher, dk, dj, self.config.zm_sigma_px,
+                                cfg.loops.min_inliers, cfg.loops.false_alarm)
+        if len(direct[0]) < direct[2]:  # the five-point check would refuse it
+            self.rejected.append((k, j, "too few matches to the old frame"))
+            return None
+        why = self._five_point_disagreement(j, k, five_point(self.camera, fk.uv, fe.frame(j).uv, direct[:2],
+                                                             self.config.zm_sigma_px, cfg.loops.min_inliers,
+                                                             cfg.loops.false_alarm))
+        if why:
+            self.rejected.append((k, j, why))
+            return None
         stored = set(fe.frame_ids)
         none = np.zeros(0, np.int64)
         span = [f for f in range(lo, hi + 1)  # the old frames around the candidate, with descriptors
                 if f in stored and filt.layout.has_pose(f) and fe.descriptors(f, none) is not None]
-        if not span:
-            self.rejected.append((k, j, "no old frame with descriptors"))
-            return None
         tids = [fe.frame(f).track_ids for f in span]
         t_all = np.concatenate(tids)
         has = np.flatnonzero(filt.layout.has_features(t_all))
         fids, first = np.unique(t_all[has], return_index=True)  # one descriptor per feature: its first
-        keep = ~np.isin(fids, fe.frame(k).track_ids)
+        keep = ~np.isin(fids, fk.track_ids)
         if keep.sum() < cfg.loops.min_inliers:
             self.rejected.append((k, j, "too few old map features"))
             return None
@@ -360,16 +376,6 @@ class LoopCloser:
         rows = [np.flatnonzero(which == n) for n in range(len(span))]
         D = np.concatenate([fe.descriptors(f, at[r] - starts[n]) for n, (f, r) in enumerate(zip(span, rows))])
         D = D[np.argsort(np.concatenate(rows))]  # back in the order of fids
-        fk = fe.frame(k)
-        dk = fe.descriptors(k)
-        # match first, the old frame (cheap) and then the place's map: most candidates fail
-        # here, and the positions of old (marginalised) features need the complete
-        # estimate, a back substitution over the whole state
-        direct = match_to_frame(self.camera, fe.matcher, dk, fe.descriptors(j), self.config.zm_sigma_px,
-                                cfg.loops.min_inliers, cfg.loops.false_alarm)
-        if len(direct[0]) < direct[2]:  # the five-point check would refuse it
-            self.rejected.append((k, j, "too few matches to the old frame"))
-            return None
         ia, ib, need = match_to_map(self.camera, fe.matcher, dk, D, self.config.zm_sigma_px,
                                     cfg.loops.min_inliers, cfg.loops.false_alarm)
         if len(ia) < need:
@@ -654,6 +660,36 @@ class LoopCloser:
             return ""
         self._pending = PendingLoop(k, j, p_m, q_m, C_m, count)
         return f"held until consecutive keyframes confirm it ({count} of {self.config.loops.consistency})"
+
+    def _five_point_disagreement(self, j: int, k: int, five) -> str:
+        """Why the direct matches of frame *k* to the old frame *j* already rule the loop out
+        ("" when they do not): the rotation test of :meth:`_disagreement`, made with the
+        five-point relation (:class:`~eifslam.frontend.loop_verification.FivePoint`) before the
+        map match and the PnP, which cost ten times more.
+
+        A loop pose that passes :func:`~eifslam.frontend.loop_verification.verify_place` has
+        its rotation within ``tracking.agree_rotation_deg`` (``d``) of the five-point one, so
+        its normalised rotation error against the estimate is at least
+        ``max(0, |phi| - d)^2 / lambda_max(C)``: ``phi`` the five-point rotation's error
+        against the estimate, ``C`` the rotation drift between the two frames. When even that
+        exceeds the bound of :meth:`_disagreement`, no pose the later tests accept can pass it.
+        The test is made only when the inliers' parallax determines the rotation
+        (``mapping.feature_parallax_deg``)."""
+        from ..estimation.agreement import chi2_quantile
+        from ..geometry.rotations import quat_log, rotmat_to_quat
+
+        cfg = self.config
+        if five.R_kj is None or five.parallax_deg < cfg.mapping.feature_parallax_deg:
+            return ""
+        filt = self.filter
+        q_m = rotmat_to_quat(quat_to_rotmat(filt.pose(j)[1]) @ five.R_kj)
+        phi = quat_log(quat_multiply(quat_conjugate(filt.pose(k)[1]), q_m))
+        excess = max(0.0, float(np.linalg.norm(phi)) - np.radians(cfg.tracking.agree_rotation_deg))
+        lam = float(np.linalg.eigvalsh(self._rotation_drift(j, k))[-1])
+        nis = excess ** 2 / lam if lam > 0 else (np.inf if excess > 0 else 0.0)
+        if nis > chi2_quantile(3, AGREEMENT_FALSE_ALARM):
+            return f"five-point rotation disagrees with the estimate (NIS at least {nis:.3g}, 3 DOF)"
+        return ""
 
     def _estimate_before(self, fl: FusedLoop) -> Array:
         """The estimate to relinearise at when loop ``fl`` is taken back: the states of the

@@ -7,6 +7,12 @@ that saw them, in recording order) is a walk along the links, one vectorised ste
 observation of the longest history. About 40 bytes an observation, where a tuple and a
 NumPy view per observation in a dictionary of lists take over 300 (a third of a megabyte
 per keyframe on a walking camera).
+
+A history query walks only the observations recorded since the last *snapshot*: the rows
+then recorded, sorted by track with each track's range (a compressed sparse row index),
+are read as slices. The snapshot is taken again when :data:`SNAPSHOT_ROWS` rows have been
+recorded since, so a walk is at most that many rows deep (a few dozen keyframes) whatever
+the age of a track, and the sort (``O(N log N)``) is amortised over those rows.
 """
 
 from __future__ import annotations
@@ -18,6 +24,9 @@ Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 __all__ = ["TrackObservations"]
+
+#: Rows recorded after which the sorted snapshot of :class:`TrackObservations` is taken again.
+SNAPSHOT_ROWS = 1 << 15
 
 
 def _grown(a: np.ndarray, n: int, fill) -> np.ndarray:
@@ -64,6 +73,7 @@ class TrackObservations:
         self._alive = np.ones(n, bool)  # False: taken back (forget)
         self._last = np.full(int(tracks.max()) + 1 if n else 0, -1, np.int64)  # per track id: its last row
         self._last[tracks[order][end]] = order[end]
+        self._snapshot()
 
     def __len__(self) -> int:
         """Observations kept (taken-back ones excluded)."""
@@ -111,16 +121,31 @@ class TrackObservations:
         ``tracks`` it belongs to and its row, grouped by that index and in recording order
         within a track (``(R,)``, ``(R,)``)."""
         tracks = np.asarray(tracks, np.int64).reshape(-1)
+        if self.n - self._snap_n >= SNAPSHOT_ROWS:
+            self._snapshot()
         inside = (tracks >= 0) & (tracks < len(self._last))
         owner = np.flatnonzero(inside)
+        # the rows recorded since the snapshot: a walk back along the links until the
+        # snapshot's rows
         cur = self._last[tracks[inside]]
         owners, rows = [], []
         while len(cur):
-            m = cur >= 0
+            m = cur >= self._snap_n
             owner, cur = owner[m], cur[m]
             owners.append(owner)
             rows.append(cur)
             cur = self._prev[cur]
+        # the snapshot's rows: each track's slice of the sorted rows
+        owner_old = np.flatnonzero(inside)
+        t_old = tracks[owner_old]
+        inside_snap = t_old < len(self._snap_ptr) - 1
+        owner_old, t_old = owner_old[inside_snap], t_old[inside_snap]
+        lo, hi = self._snap_ptr[t_old], self._snap_ptr[t_old + 1]
+        count = hi - lo
+        if count.sum():
+            owners.append(np.repeat(owner_old, count))
+            first = np.repeat(lo - np.cumsum(count) + count, count)  # each slice's start, minus its offset
+            rows.append(self._snap_rows[first + np.arange(int(count.sum()))])
         if not rows:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         owner, row = np.concatenate(owners), np.concatenate(rows)
@@ -128,6 +153,16 @@ class TrackObservations:
         owner, row = owner[live], row[live]
         order = np.lexsort((row, owner))
         return owner[order], row[order]
+
+    def _snapshot(self) -> None:
+        """Sort the rows recorded so far by track (then row) and index each track's range."""
+        n = self.n
+        t = self._track[:n]
+        order = np.lexsort((np.arange(n), t)).astype(np.int64)
+        self._snap_rows = order
+        self._snap_ptr = np.searchsorted(t[order], np.arange(len(self._last) + 1)).astype(np.int64) \
+            if n else np.zeros(1, np.int64)
+        self._snap_n = n
 
     def frames(self, rows: IntArray) -> IntArray:
         """Frames of observation rows ``(R,)``."""
