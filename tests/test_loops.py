@@ -251,13 +251,41 @@ def test_mapper_records_a_loops_observations_as_covisibility():
     assert back.covisible([7, 8]) == m.covisible([7, 8])
 
 
+def test_five_point_gives_the_relative_rotation_and_no_parallax_on_a_zero_baseline():
+    """The direct matches' relation: on a baseline the essential matrix's rotation (camera *k*
+    to camera *j*) and a parallax of the order the geometry gives; on the same viewpoint a
+    parallax near zero, whatever rotation the degenerate essential matrix returns (so the
+    rotation is not tested)."""
+    from eifslam.frontend.loop_verification import five_point
+    from eifslam.geometry.camera import PinholeCamera
+    from eifslam.geometry.rotations import rotvec_exp
+
+    rng = np.random.default_rng(5)
+    cam = PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)
+    X = np.column_stack([rng.uniform(-2, 2, 300), rng.uniform(-1.5, 1.5, 300), rng.uniform(4, 8, 300)])
+    R_k = rotvec_exp(np.array([0.02, -0.1, 0.01]))
+    uv_j = _view(rng, cam, np.eye(3), np.zeros(3), X)
+    all_ = (np.arange(300), np.arange(300))
+    moved = five_point(cam, _view(rng, cam, R_k, np.array([0.8, -0.2, 1.5]), X), uv_j, all_, 1.0, floor=20)
+    assert moved.inliers >= moved.required and moved.R_kj is not None
+    R_true = R_k  # x_j = R_wc_j^T R_wc_k x_k with R_wc_j = I
+    angle = np.degrees(np.arccos(np.clip((np.trace(moved.R_kj.T @ R_true) - 1) / 2, -1, 1)))
+    assert angle < 0.5
+    # a lower bound of the parallax (about 5-15 degrees here: 1.7 m, mostly forward, at
+    # 4-8 m), the part no rotation explains
+    assert 2.0 < moved.parallax_deg < 15.0
+    still = five_point(cam, _view(rng, cam, R_k, np.zeros(3), X), uv_j, all_, 1.0, floor=20)
+    assert still.parallax_deg < 0.5
+
+
 def make_scene_camera():
     from eifslam.sim.scene import make_scene
 
     return make_scene(n_frames=3, width=64, height=48).camera
 
 
-@pytest.mark.parametrize("reason,back_off", [("too few PnP inliers", True), ("too few five-point inliers", False)])
+@pytest.mark.parametrize("reason,back_off", [("too few PnP inliers", True), ("too few five-point inliers", False),
+                                             ("five-point rotation disagrees with the estimate (NIS at least 50, 3 DOF)", True)])
 def test_a_place_refused_on_its_map_waits_for_new_consistent_queries(monkeypatch, reason, back_off):
     """A candidate place whose map features the frame does not fit is verified again only
     after it came back in ``loop_consistency`` more queries: the refusal restarts the count

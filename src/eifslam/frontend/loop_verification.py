@@ -182,8 +182,9 @@ class FivePoint:
         Rotation from camera *k*'s frame to camera *j*'s (``x_j = R_kj x_k``), when the
         inliers reach the count.
     parallax_deg : float
-        Median angle, degrees, between the inliers' two rays once ``R_kj`` is taken out: below
-        a couple of degrees the essential matrix is degenerate and ``R_kj`` undetermined.
+        Median angle, degrees, between the inliers' two rays once the rotation that aligns
+        them best is taken out (a lower bound of the parallax): below a couple of degrees the
+        essential matrix is degenerate and ``R_kj`` undetermined.
     """
 
     inliers: int
@@ -214,7 +215,14 @@ def five_point(camera: PinholeCamera, uv_k: Array, uv_j: Array, direct: tuple[In
         b = np.c_[uv, np.ones(len(uv))] @ Kinv.T
         return b / np.linalg.norm(b, axis=1, keepdims=True)
 
-    cos = np.sum(rays(uv_k[ja][inl]) @ R.T * rays(uv_j[jb][inl]), axis=1)
+    # the parallax left by the rotation that best aligns the two rays of every inlier
+    # (Wahba's problem, by SVD), not by the essential matrix's own rotation: on a baseline
+    # near zero the essential matrix is degenerate and its rotation, and the angles it
+    # leaves, arbitrary (the twisted pair turns half a revolution)
+    bk, bj = rays(uv_k[ja][inl]), rays(uv_j[jb][inl])
+    U, _, Vt = np.linalg.svd(bj.T @ bk)
+    R_best = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    cos = np.sum(bk @ R_best.T * bj, axis=1)
     return FivePoint(n, need, R, float(np.degrees(np.median(np.arccos(np.clip(cos, -1.0, 1.0))))))
 
 

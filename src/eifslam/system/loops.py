@@ -165,8 +165,10 @@ class FusedLoop:
     checks: int
 
 
-_PLACE_REFUSED = ("too few old map features", "too few matches to the map", "PnP failed", "too few PnP inliers")
-"""Verification failures that refuse the candidate's place as a whole (its map features)."""
+_PLACE_REFUSED = ("too few old map features", "too few matches to the map", "PnP failed", "too few PnP inliers",
+                  "five-point rotation disagrees with the estimate")
+"""Verification failures that refuse the candidate's place as a whole (its map features, or the
+rotation its view implies against the estimate)."""
 
 
 def most_observing(frames, track_ids_of, features: NDArray[np.int64]) -> int | None:
@@ -283,7 +285,7 @@ class LoopCloser:
             return None
         n_rejected = len(self.rejected)
         lc = self._verify_and_fuse(k, *best)
-        if lc is None and len(self.rejected) > n_rejected and self.rejected[-1][2] in _PLACE_REFUSED:
+        if lc is None and len(self.rejected) > n_rejected and self.rejected[-1][2].startswith(_PLACE_REFUSED):
             # a place whose map the frame does not fit must come back in loop_consistency
             # more queries before it is verified again: a place that aliases the current one
             # (repeated texture, a view from too far) is otherwise verified at every frame it

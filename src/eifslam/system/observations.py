@@ -112,7 +112,7 @@ class TrackObservations:
 
     def forget(self, frame: int, tracks: IntArray) -> None:
         """Take back the observations of ``tracks`` by ``frame`` (kept as dead rows)."""
-        _, rows = self.rows_of(tracks)
+        _, rows = self._rows(tracks)
         self._alive[rows[self._frame[rows] == frame]] = False
 
     # -- queries ---------------------------------------------------------------------
@@ -120,6 +120,12 @@ class TrackObservations:
         """The live observations of ``tracks`` ``(M,)``: for each, the index into
         ``tracks`` it belongs to and its row, grouped by that index and in recording order
         within a track (``(R,)``, ``(R,)``)."""
+        owner, row = self._rows(tracks)
+        order = np.lexsort((row, owner))
+        return owner[order], row[order]
+
+    def _rows(self, tracks: IntArray) -> tuple[IntArray, IntArray]:
+        """:meth:`rows_of` in no particular order."""
         tracks = np.asarray(tracks, np.int64).reshape(-1)
         if self.n - self._snap_n >= SNAPSHOT_ROWS:
             self._snapshot()
@@ -150,9 +156,7 @@ class TrackObservations:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         owner, row = np.concatenate(owners), np.concatenate(rows)
         live = self._alive[row]
-        owner, row = owner[live], row[live]
-        order = np.lexsort((row, owner))
-        return owner[order], row[order]
+        return owner[live], row[live]
 
     def _snapshot(self) -> None:
         """Sort the rows recorded so far by track (then row) and index each track's range."""
@@ -174,9 +178,14 @@ class TrackObservations:
 
     def covisible(self, tracks: IntArray) -> dict[int, int]:
         """Frames that observed any of ``tracks``, with how many of them each observed."""
-        _, rows = self.rows_of(tracks)
-        f, c = np.unique(self._frame[rows], return_counts=True)
-        return dict(zip(f.tolist(), c.tolist()))
+        _, rows = self._rows(tracks)
+        if not len(rows):
+            return {}
+        f = self._frame[rows]
+        lo = int(f.min())
+        c = np.bincount(f - lo)
+        nz = np.flatnonzero(c)
+        return dict(zip((nz + lo).tolist(), c[nz].tolist()))
 
     # -- sessions --------------------------------------------------------------------
     def arrays(self) -> tuple[IntArray, IntArray, Array]:
