@@ -273,3 +273,35 @@ def test_robust_smoothing_leaves_every_pose_its_best_zm():
         assert got.sum() == want
         best = np.sort(chi2_all[mine])[:want]  # the lowest chi-square ones
         assert np.allclose(np.sort(f.linearise_features(kept.subset(got), gate=False)[5]), best)
+
+
+@pytest.mark.parametrize("recovery", ["incremental", "full"])
+def test_restart_forgets_every_state_and_keeps_the_kind_of_recovery(recovery):
+    """``restart`` leaves the filter as constructed: no state, measurement or prior, the same
+    configuration and a recovery of the same kind and settings that has seen nothing; the
+    same run after it gives the same estimate as a new filter."""
+    from eifslam.estimation.filter import InformationFilter
+    from eifslam.geometry.camera import PinholeCamera
+
+    cam = PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)
+
+    def run(f: InformationFilter) -> np.ndarray:
+        f.add_pose(0, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+        f.fix_pose(0)
+        f.add_pose(1, np.array([0.1, 0.0, 0.0]), np.array([1.0, 0.0, 0.0, 0.0]))
+        f.set_scale(0, 1, 0.1)
+        f.recover()
+        return f.x.copy()
+
+    used = InformationFilter(cam, recovery=recovery, window=3)
+    run(used)
+    if used.incremental is not None:
+        used.incremental.full_solve_flops_per_entry = 123.0
+    used.restart()
+    assert used.layout.n_poses == 0 and used.dim == 0 and not used.priors.pose
+    assert type(used.recovery) is type(InformationFilter(cam, recovery=recovery).recovery)
+    if used.incremental is not None:
+        assert used.incremental.stats.steps == 0 and used.incremental.feature_window == 3
+        assert used.incremental.full_solve_flops_per_entry == 123.0
+        used.incremental.full_solve_flops_per_entry = 2e4
+    np.testing.assert_array_equal(run(used), run(InformationFilter(cam, recovery=recovery, window=3)))

@@ -82,6 +82,20 @@ class InformationFilter:
         self.recovery: RecoveryMode = recovery
         self.info = recovery.information_store()
 
+    def restart(self) -> None:
+        """Forget every state, measurement and prior: the filter as it was constructed (the
+        same configuration, a recovery of the same kind and settings that has seen nothing).
+        What :class:`~eifslam.system.slam.Slam` does when the world frame moves on before
+        the map exists."""
+        self.layout = StateLayout()
+        self.store = MeasurementStore()
+        self.priors = PriorStore()
+        self._x = np.zeros(64)
+        self._xfe = np.zeros(64)
+        self._factor = None
+        self.recovery = self.recovery.fresh()
+        self.info = self.recovery.information_store()
+
     @property
     def incremental(self) -> IncrementalRecovery | None:
         """The incremental recovery's window (its statistics, for inspection), or None."""

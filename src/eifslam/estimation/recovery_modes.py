@@ -18,6 +18,7 @@ where cheap, session state), so the filter has no branch on which one it holds.
 
 from __future__ import annotations
 
+import dataclasses
 from contextlib import AbstractContextManager, nullcontext
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
@@ -26,7 +27,7 @@ from numpy.typing import NDArray
 
 from ..errors import EstimatorError, SessionError
 from .blocks import block_entries, dense_diagonal_blocks
-from .incremental import IncrementalRecovery, TrackedInformationStore
+from .incremental import IncrementalRecovery, RecoveryStats, TrackedInformationStore
 from .information import InformationStore
 from .relinearisation import OnlineRelinearisation
 from .state import POSE_DIM
@@ -49,6 +50,10 @@ class RecoveryMode(Protocol):
 
     def information_store(self) -> InformationStore:
         """A new, empty store of ``I`` and ``i``, with this recovery listening to it."""
+        ...
+
+    def fresh(self) -> "RecoveryMode":
+        """A recovery of the same kind and settings that has seen nothing."""
         ...
 
     def recover(self, filt: "InformationFilter") -> Array:
@@ -121,6 +126,9 @@ class FullRecovery:
     incremental = None
     online = None
 
+    def fresh(self) -> "FullRecovery":
+        return FullRecovery()
+
     def information_store(self) -> InformationStore:
         return InformationStore()
 
@@ -189,6 +197,13 @@ class WindowRecovery:
     def __init__(self, window: int, online: OnlineRelinearisation | None = None) -> None:
         self.incremental: IncrementalRecovery = IncrementalRecovery(window, window)
         self.online = online
+
+    def fresh(self) -> "WindowRecovery":
+        inc = self.incremental
+        out = WindowRecovery(inc.feature_window, None if self.online is None else
+                             OnlineRelinearisation(self.online.threshold, self.online.budget))
+        out.incremental = dataclasses.replace(inc, stats=RecoveryStats())
+        return out
 
     def information_store(self) -> InformationStore:
         info = TrackedInformationStore()

@@ -95,11 +95,11 @@ def unplaced_initial(slam: "Slam", k: int) -> list[int]:
     from .results import TrackingState
 
     results = slam.results
-    first = next((r.frame_id for r in results if r.frame_id > 0 and r.position is not None
+    first = next((r.frame_id for r in results if r.position is not None
                   and r.state is TrackingState.TRACKING and r.reference is not None), None)
     if first is None:
         return []
-    waiting = [r.frame_id for r in results[1:first] if r.position is None and r.state is TrackingState.INITIALISING]
+    waiting = [r.frame_id for r in results[:first] if r.position is None and r.state is TrackingState.INITIALISING]
     if not waiting:
         return []
     seen = slam.frontend.map_observations(k)[0]

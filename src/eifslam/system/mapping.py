@@ -159,6 +159,12 @@ class Mapper:
         self._obs.add(int(k), np.asarray(track_ids, np.int64).reshape(-1), np.asarray(uv, float).reshape(-1, 2),
                       only_new=True)
 
+    def forget_frame(self, k: int) -> None:
+        """Take back :meth:`record_observations` of frame *k* (a world frame that moved on
+        before the map existed)."""
+        ids, _ = self.frontend.map_observations(k)
+        self._obs.forget(int(k), np.asarray(ids, np.int64).reshape(-1))
+
     def forget_loop(self, k: int, track_ids) -> None:
         """Take back :meth:`record_loop`: frame *k* no longer observes the old map features
         ``track_ids (M,)`` (a loop taken back)."""

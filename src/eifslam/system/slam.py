@@ -25,6 +25,7 @@ from ..errors import EifslamError, EstimatorError
 from ..estimation.filter import InformationFilter
 from ..estimation.smoothing import SmoothingReport, recover_scale, smooth
 from ..geometry.camera import PinholeCamera
+from ..frontend.results import Reason
 from .config import Mode, SlamConfig
 from .algorithm1 import OnMap, algorithm1
 from .finishing import FinishReport, bundle_adjust_slam
@@ -168,12 +169,7 @@ class Slam:
             if res is not None:
                 return self._record(res, t0)
         if self.filter.layout.n_poses == 0:
-            self.filter.add_pose(k, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
-            self.filter.fix_pose(k)
-            self.mapper.record_observations(k)
-            res = TrackResult(k, ts, TrackingState.INITIALISING, np.zeros(3), np.array([1.0, 0, 0, 0]),
-                              reason="first frame: world frame", timings_ms=timings)
-            return self._record(res, t0)
+            return self._record(self._world_frame(k, ts, timings, "first frame: world frame"), t0)
         tracker = self.tracker
         try:
             rp, tried = tracker.find_reference(k, timings, relocalise=False)
@@ -190,6 +186,8 @@ class Slam:
                 tried = tried2 or tried
                 if rp is None:
                     reason = tried.reason if tried is not None else "no known pose to relate to"
+                    if self.filter.layout.n_poses == 1 and reason == Reason.TOO_FEW_COMMON:
+                        return self._record(self._move_world_frame(k, ts, timings), t0)
                     return self._record(TrackResult(k, ts, self._lost_state(), reason=f"lost: {reason}",
                                                     timings_ms=timings), t0)
                 algorithm1(k, rp, tracker, timings)
@@ -208,6 +206,33 @@ class Slam:
         res = TrackResult(k, ts, TrackingState.TRACKING, p, q, cov, reason=why,
                           reference=rp.measurement.i, timings_ms=timings)
         return self._record(res, t0)
+
+    def _world_frame(self, k: int, ts: float, timings: dict[str, float], reason: str) -> TrackResult:
+        """Frame *k* becomes the world frame: the first pose, at the origin, fixed (the gauge)."""
+        self.filter.add_pose(k, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+        self.filter.fix_pose(k)
+        self.mapper.record_observations(k)
+        return TrackResult(k, ts, TrackingState.INITIALISING, np.zeros(3), np.array([1.0, 0, 0, 0]),
+                           reason=reason, timings_ms=timings)
+
+    def _move_world_frame(self, k: int, ts: float, timings: dict[str, float]) -> TrackResult:
+        """Before the map exists, frame *k* shares too few tracks with the world frame for a
+        relative pose, and tracks only end: no later frame will share more. The world
+        frame moves on to frame *k* (the filter starts again, :meth:`InformationFilter.restart`),
+        and the old one waits, as the frames between them do, to be placed on the map once
+        it exists (as ORB-SLAM's initialiser takes a new reference frame). On a weakly
+        textured view the first frame's few tracks can end before the camera has moved
+        enough for a baseline; without this no frame of the run would be placed."""
+        old = self.filter.layout.pose_ids[0]
+        self.filter.restart()
+        self.mapper.forget_frame(old)
+        r = self.results[old]
+        self.results[old] = TrackResult(old, r.timestamp, TrackingState.INITIALISING,
+                                        reason=f"initialising: the world frame moved to frame {k} "
+                                               f"({Reason.TOO_FEW_COMMON} with frame {old})",
+                                        timings_ms=r.timings_ms)
+        self._waiting = sorted(set(self._waiting) | {old})
+        return self._world_frame(k, ts, timings, f"world frame (too few common features with frame {old})")
 
     def _between_keyframes(self, k: int, ts: float, timings: dict[str, float]) -> TrackResult | None:
         """Frame *k* localised on the map, when it need not be a keyframe; None otherwise
@@ -235,8 +260,8 @@ class Slam:
                            reason=reason, reference=mp.reference, timings_ms=timings, keyframe=False)
 
     def untracked(self) -> list[int]:
-        """Frames (after the first) that have no pose, in frame order."""
-        return [r.frame_id for r in self.results if r.frame_id > 0 and r.position is None]
+        """Frames that have no pose, in frame order."""
+        return [r.frame_id for r in self.results if r.position is None]
 
     def retry_frame(self, j: int, reason: str, relative: bool = True, wide=None, relative_first: bool = False) -> bool:
         """Localise an earlier frame *j* that has no pose (:func:`~.late.place_late`:
@@ -259,7 +284,7 @@ class Slam:
         if res.keyframe and res.position is not None \
                 and self.filter.layout.has_pose(res.frame_id):
             self.keyframes.note_keyframe(res.frame_id, res.timestamp)
-        if res.position is None and res.state is TrackingState.INITIALISING and res.frame_id > 0:
+        if res.position is None and res.state is TrackingState.INITIALISING:
             self._waiting.append(res.frame_id)
         elif res.state is TrackingState.TRACKING and self._waiting and self.filter.layout.n_poses >= 2:
             # the map now exists: the frames that waited for a baseline are localised on it,
