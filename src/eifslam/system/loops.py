@@ -45,6 +45,7 @@ those features, which is what moves the whole loop.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -55,6 +56,9 @@ from ..frontend.places import PlaceIndex
 from ..geometry.camera import PinholeCamera
 from ..geometry.rotations import quat_conjugate, quat_multiply, quat_to_rotmat
 from .config import SlamConfig
+
+if TYPE_CHECKING:  # imported where used: the front end's verification needs OpenCV
+    from ..frontend.loop_verification import FivePoint
 
 Array = NDArray[np.float64]
 
@@ -663,11 +667,12 @@ class LoopCloser:
         self._pending = PendingLoop(k, j, p_m, q_m, C_m, count)
         return f"held until consecutive keyframes confirm it ({count} of {self.config.loops.consistency})"
 
-    def _five_point_disagreement(self, j: int, k: int, five) -> str:
+    def _five_point_disagreement(self, j: int, k: int, five: "FivePoint") -> str:
         """Why the direct matches of frame *k* to the old frame *j* already rule the loop out
         ("" when they do not): the rotation test of :meth:`_disagreement`, made with the
         five-point relation (:class:`~eifslam.frontend.loop_verification.FivePoint`) before the
-        map match and the PnP, which cost ten times more.
+        place's map is read and matched and the PnP solved, which cost about five times as much
+        (on the loop world with SIFT).
 
         A loop pose that passes :func:`~eifslam.frontend.loop_verification.verify_place` has
         its rotation within ``tracking.agree_rotation_deg`` (``d``) of the five-point one, so
