@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from ..geometry.camera import PinholeCamera
 from ..geometry.rotations import rotmat_to_quat
 from .matching import DescriptorMatcher, essential_ransac
+from .twoview import rotation_only_parallax_deg
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -209,21 +210,12 @@ def five_point(camera: PinholeCamera, uv_k: Array, uv_j: Array, direct: tuple[In
     if n < need:
         return FivePoint(n, need)
     _, R, _, _ = cv2.recoverPose(E[:3, :3], uv_k[ja][inl], uv_j[jb][inl], camera.K)
-    Kinv = np.linalg.inv(camera.K)
-
-    def rays(uv: Array) -> Array:
-        b = np.c_[uv, np.ones(len(uv))] @ Kinv.T
-        return b / np.linalg.norm(b, axis=1, keepdims=True)
-
-    # the parallax left by the rotation that best aligns the two rays of every inlier
-    # (Wahba's problem, by SVD), not by the essential matrix's own rotation: on a baseline
-    # near zero the essential matrix is degenerate and its rotation, and the angles it
-    # leaves, arbitrary (the twisted pair turns half a revolution)
-    bk, bj = rays(uv_k[ja][inl]), rays(uv_j[jb][inl])
-    U, _, Vt = np.linalg.svd(bj.T @ bk)
-    R_best = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    cos = np.sum(bk @ R_best.T * bj, axis=1)
-    return FivePoint(n, need, R, float(np.degrees(np.median(np.arccos(np.clip(cos, -1.0, 1.0))))))
+    # the parallax left by the rotation that best aligns the two rays of every inlier, not
+    # by the essential matrix's own rotation: on a baseline near zero the essential matrix
+    # is degenerate and its rotation, and the angles it leaves, arbitrary (the twisted pair
+    # turns half a revolution)
+    parallax = rotation_only_parallax_deg(camera.bearing(uv_k[ja][inl]), camera.bearing(uv_j[jb][inl]))
+    return FivePoint(n, need, R, parallax)
 
 
 def verify_place(camera: PinholeCamera, matcher: DescriptorMatcher, uv_k: Array, desc_k: NDArray,

@@ -63,17 +63,17 @@ class TrackObservations:
         if len(tracks) and tracks.min() < 0:
             raise ValueError("track ids must be non-negative")
         n = len(tracks)
-        order = np.lexsort((np.arange(n), tracks))  # by track, then as given
-        same = tracks[order][1:] == tracks[order][:-1]
-        end = np.append(~same, True) if n else np.zeros(0, bool)  # each track's last row
         self.n = n  # rows used
         self._frame, self._track, self._uv = frames.copy(), tracks.copy(), uv.copy()
-        self._prev = np.full(n, -1, np.int64)  # the track's previous row, -1: none
-        self._prev[order[1:][same]] = order[:-1][same]
         self._alive = np.ones(n, bool)  # False: taken back (forget)
         self._last = np.full(int(tracks.max()) + 1 if n else 0, -1, np.int64)  # per track id: its last row
+        self._snapshot()  # the rows by track, then as given
+        order = self._snap_rows
+        same = tracks[order][1:] == tracks[order][:-1]
+        end = np.append(~same, True) if n else np.zeros(0, bool)  # each track's last row
+        self._prev = np.full(n, -1, np.int64)  # the track's previous row, -1: none
+        self._prev[order[1:][same]] = order[:-1][same]
         self._last[tracks[order][end]] = order[end]
-        self._snapshot()
 
     def __len__(self) -> int:
         """Observations kept (taken-back ones excluded)."""
