@@ -613,3 +613,31 @@ def test_zm_of_marginalised_features_wait_and_are_all_fused_at_the_end(monkeypat
     assert slam.mapper.deferred == 0
     f.complete_estimate()
     assert rel_err(f.x, full_solve(f)) < 1e-8
+
+
+def test_zm_fused_late_leave_their_features_out_of_the_window(monkeypatch):
+    """A revisit's waiting ``Zm`` are fused as late measurements: the solve after them is
+    still the full solve of the information, but the old features stay out of the active
+    window, so their next ``Zm`` wait again instead of pulling the old poses into it."""
+    monkeypatch.setattr(IncrementalRecovery, "reactivation_affordable", lambda self, starts: False)
+    monkeypatch.setattr(IncrementalRecovery, "reactivation_flops", lambda self, plan: np.inf)  # as after a lap
+    c = corridor_scene(20, np.random.default_rng(11), points_per_metre=12.0)
+    back = np.r_[np.arange(20), np.arange(18, 4, -1)]
+    sc = SyntheticScene(c.camera, c.positions[back], c.quats[back], c.points)
+    fe = SyntheticFrontEnd(sc, 11, map_fraction=1.0)
+    f = InformationFilter(sc.camera, recovery="incremental", window=1)
+    slam = Slam(sc.camera, fe.slam_config().replace(smoothing={"mode": "filter"}), frontend=fe, backend=f)
+    k = 0
+    while slam.mapper.deferred < 30:
+        slam.track(k)
+        k += 1
+    waiting = slam.mapper.deferred_features()
+    assert slam.mapper.flush_deferred() > 0 and slam.mapper.deferred == 0
+    f.recover_active()
+    assert f.incremental.stats.fallbacks >= 1  # the late Zm needed the whole state solved
+    starts = f.layout.feature_columns(waiting)[:, 0]
+    assert not np.any(f.incremental.window.pos[starts] >= 0)  # none of them came back
+    f.complete_estimate()
+    assert rel_err(f.x, full_solve(f)) < 1e-8
+    slam.track(k)
+    assert slam.mapper.deferred > 0  # their next Zm wait again

@@ -177,9 +177,10 @@ class DenseEKF:
         """Linearise ``Zm`` at the current mean (:func:`eifslam.estimation.factors.features`)."""
         return factors.features(self.layout, self.x, self.camera, self.config, obs, gate)
 
-    def fuse_features(self, obs: FeatureObservations, store: bool = True, gate: bool = True) -> FeatureObservations:
+    def fuse_features(self, obs: FeatureObservations, store: bool = True, gate: bool = True,
+                      recent: bool = True) -> FeatureObservations:
         """Linearise a batch of ``Zm`` (gated as in the EIF) and buffer it; return the
-        measurements kept."""
+        measurements kept (``recent`` is the EIF's recovery's business: no effect here)."""
         if len(obs) == 0:
             return obs
         ok, idx, J, W, innov, _ = self.linearise_features(obs, gate)

@@ -79,8 +79,11 @@ class Backend(Protocol):
         (:func:`eifslam.estimation.factors.features`)."""
         ...
 
-    def fuse_features(self, obs: FeatureObservations, store: bool = True, gate: bool = True) -> FeatureObservations:
-        """Fuse a batch of ``Zm``; return the measurements kept."""
+    def fuse_features(self, obs: FeatureObservations, store: bool = True, gate: bool = True,
+                      recent: bool = True) -> FeatureObservations:
+        """Fuse a batch of ``Zm``; return the measurements kept. ``recent=False``: measurements
+        made earlier and fused late (the recovery's window does not take their states back
+        for them)."""
         ...
 
     def fuse_relative(self, rps: list[RelativePose], store: bool = True) -> None:

@@ -246,7 +246,8 @@ class InformationFilter:
 
     def add_information(self, idx, Lam: Array, eta: Array, measurement: bool = True) -> None:
         """Add blocks ``Lam (N, k, k)`` to ``I`` and ``eta (N, k)`` to ``i`` at ``idx (N, k)``;
-        ``measurement=False``: a correction (relinearisation), the states age as untouched."""
+        ``measurement=False``: a correction (relinearisation) or measurements fused late, the
+        states age as untouched."""
         if measurement:
             self.info.add(idx, Lam, eta)
         else:
@@ -282,18 +283,21 @@ class InformationFilter:
             ok &= (depth > self.config.min_depth) & np.isfinite(np.sum((obs.uv - h) ** 2, 1) / obs.sigma_px**2)
         return ok, idx, J, W, innov, chi2
 
-    def fuse_features(self, obs: FeatureObservations, store: bool = True, gate: bool = True) -> FeatureObservations:
+    def fuse_features(self, obs: FeatureObservations, store: bool = True, gate: bool = True,
+                      recent: bool = True) -> FeatureObservations:
         """Fuse a batch of ``Zm``; return the measurements actually fused.
 
         Measurements whose predicted depth is below ``min_depth`` or whose innovation
-        fails the ``gate_chi2`` test are skipped (never fused as NaN/inf).
+        fails the ``gate_chi2`` test are skipped (never fused as NaN/inf). ``recent=False``:
+        measurements made earlier and fused late, which leave the states they touch as old
+        as they were (the recovery does not take them back into its window for them).
         """
         if len(obs) == 0:
             return obs
         ok, idx, J, W, innov, _ = self.linearise_features(obs, gate)
         if not np.all(ok):
             obs, idx, J, W, innov = obs.subset(ok), idx[ok], J[ok], W[ok], innov[ok]
-        self._fuse(Linearised(idx, J, W, innov))
+        self.add_information(idx, *Linearised(idx, J, W, innov).information(self.x), measurement=recent)
         if store and len(obs):
             self.store.features.append(obs)
             if self.online is not None:

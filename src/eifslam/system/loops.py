@@ -465,7 +465,9 @@ class LoopCloser:
             fused = info.fuse_features(obs, gate=False)
             relinearise_all(info, cfg.loops.smooth_passes)
             filt.set_from_information_form(info)
-            # x is now the full solution; the incremental window is rebuilt at the next step
+            # x is now the full solution; the incremental window is rebuilt at the next step,
+            # which takes in a revisit's waiting Zm at no extra cost (Mapper.fuse_zm)
+            self.mapper.flush_deferred()
         else:
             from ..estimation.factors import Linearised
 
@@ -473,6 +475,7 @@ class LoopCloser:
             Lam, eta = Linearised(idx[ok], J[ok], W[ok], innov[ok]).information(filt.x)
             record = (idx[ok], Lam, eta)
             fused = filt.fuse_features(obs, gate=False)
+            self.mapper.flush_deferred()
             filt.recover_active()
         lc.fused = len(fused)
         self.closures.append(lc)

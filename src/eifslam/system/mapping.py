@@ -35,10 +35,15 @@ _GREY = np.array([200, 200, 200], np.uint8)
 #: back substitution (loop verification, the end of the run).
 RECENT_STEPS = 30
 
-#: Keyframes the ``Zm`` of features outside the local map wait before they are fused
-#: together (:meth:`Mapper.fuse_zm`): a revisit then costs one solve of the whole state per
-#: this many keyframes instead of one per keyframe.
+#: The ``Zm`` of features outside the local map wait (:meth:`Mapper.fuse_zm`) until a loop is
+#: fused (its recovery solves the whole state anyway), or at most this many keyframes ...
 DEFER_KEYFRAMES = 30
+
+#: ... or this fraction of the keyframes in the state, whichever is more. Fusing them costs a
+#: solve of the whole state, ``O(n)``; waiting a fixed fraction of the keyframes makes its
+#: share of a keyframe's cost bounded whatever the map's size, as a growing array that
+#: doubles its capacity has a bounded cost per element.
+DEFER_FRACTION = 0.1
 
 
 def project(camera: PinholeCamera, p: Array, q: Array, X: Array) -> tuple[Array, Array]:
@@ -228,8 +233,9 @@ class Mapper:
         re-activated), a rebuild of the window for one of a lap ago; on a revisit every
         keyframe sees more of them. Waiting changes only when
         they enter: a measurement is linearised when it is fused, and the information
-        form is a sum. They are fused together every :data:`DEFER_KEYFRAMES` keyframes
-        (one solve for the lot), before a session is saved and at the end of the run.
+        form is a sum. They are fused together (one solve for the lot) with the next loop,
+        after :data:`DEFER_KEYFRAMES` keyframes or :data:`DEFER_FRACTION` of the state's
+        keyframes if no loop comes, before a session is saved and at the end of the run.
         Returns the ``Zm`` fused now."""
         recent = self.filter.recent_features(zm.feature)
         if not np.all(recent) and not self.filter.affordable_features(zm.feature[~recent]):
@@ -242,13 +248,23 @@ class Mapper:
         """How many ``Zm`` wait to be fused (:meth:`fuse_zm`)."""
         return sum(len(b) for b in self._deferred)
 
+    def deferred_features(self) -> NDArray[np.int64]:
+        """Track ids of the map features whose ``Zm`` wait (:meth:`fuse_zm`), sorted."""
+        if not self._deferred:
+            return np.zeros(0, np.int64)
+        return np.unique(np.concatenate([np.asarray(b.feature, np.int64) for b in self._deferred]))
+
     def flush_deferred(self) -> int:
-        """Fuse the ``Zm`` that waited (:meth:`fuse_zm`); returns how many were fused."""
+        """Fuse the ``Zm`` that waited (:meth:`fuse_zm`); returns how many were fused.
+
+        They are fused as late measurements: the old features they measure stay out of the
+        recovery's window (their later ``Zm`` wait again), so that the window keeps the
+        states of the local map only and its cost does not grow on a revisit."""
         if not self._deferred:
             return 0
         zm = FeatureObservations.concatenate(self._deferred)
         self._deferred, self._deferred_for = [], 0
-        return len(self.filter.fuse_features(zm))
+        return len(self.filter.fuse_features(zm, recent=False))
 
     def recover(self) -> None:
         """Recover the state after fusing: the active window, then the states marginalised
@@ -262,7 +278,7 @@ class Mapper:
         estimate is read (:meth:`InformationFilter.complete_estimate`)."""
         if self._deferred:
             self._deferred_for += 1
-            if self._deferred_for >= DEFER_KEYFRAMES:
+            if self._deferred_for >= max(DEFER_KEYFRAMES, DEFER_FRACTION * self.filter.layout.n_poses):
                 self.flush_deferred()
         self.filter.recover_active()
         self.filter.recent_estimate(RECENT_STEPS)
