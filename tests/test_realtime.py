@@ -161,7 +161,7 @@ def test_pipelined_run_is_the_sequential_run_on_the_rendered_scene(scene_frames)
     seq_run = run_sequence(scene_frames, cfg, quiet=True, prefetch=0)
     scene_frames.threads.clear()
     pipe_run = run_sequence(scene_frames, cfg, quiet=True, prefetch=2)
-    assert scene_frames.threads == {"eifslam-prefetch"}  # decoding left the main thread
+    assert scene_frames.threads == {"eifslam-prefetch"}  # decoding left the main thread, in one thread
     assert seq_run.stopped is None and pipe_run.stopped is None
     assert sum(r.position is not None for r in pipe_run.slam.results) >= 8
     _same_runs(seq_run, pipe_run)
@@ -212,14 +212,14 @@ def test_ctrl_c_stops_cleanly_and_keeps_the_estimate(scene_frames, monkeypatch):
         return real_track(self, image, timestamp)
 
     monkeypatch.setattr(slam_module.Slam, "track", track)
-    before = {t for t in threading.enumerate() if t.name == "eifslam-prefetch"}
+    before = {t for t in threading.enumerate() if t.name.startswith("eifslam-")}
     run = run_sequence(scene_frames, SlamConfig(), quiet=True, prefetch=2)
     assert run.stopped == "interrupted"
     assert run.slam.n_frames == 5 and sum(r.position is not None for r in run.slam.results) >= 4
     assert len(run.slam.trajectory()[0]) >= 4
-    left = {t for t in threading.enumerate() if t.name == "eifslam-prefetch"} - before
-    assert not any(t.is_alive() for t in left)  # the worker did not outlive the run
-    assert max(scene_frames.loaded[-3:]) <= 5 + 2 + 1  # it stopped a few frames ahead
+    left = {t for t in threading.enumerate() if t.name.startswith("eifslam-")} - before
+    assert not any(t.is_alive() for t in left)  # the workers did not outlive the run
+    assert max(scene_frames.loaded[-3:]) <= 5 + 2 + 2 + 1  # stopped a few frames ahead (queue + detections)
 
 
 def test_an_internal_error_stops_the_run_and_keeps_the_estimate(scene_frames, monkeypatch):
@@ -249,6 +249,43 @@ def test_prefetcher_stops_when_closed_on_a_full_queue():
     pre.close(timeout=5.0)
     assert not pre.alive
     assert len(seq.loaded) < 10
+
+
+def test_prefetcher_detects_in_parallel_and_hands_frames_on_in_order():
+    """Several detection threads finish out of order (here the even frames take longer);
+    the consumer still gets every frame in order, ``ahead`` runs in frame order in one
+    thread, and the first frame is detected before any other starts."""
+    import time as _time
+
+    n = 12
+    seq = _Frames(PinholeCamera(100.0, 100.0, 50.0, 50.0, 100, 100), list(range(n)), range(n))
+    events, lock = [], threading.Lock()  # (frame, +1 start / -1 end) in the order they happen
+
+    def detect(k):
+        with lock:
+            events.append((k, 1))
+        _time.sleep(0.02 if k % 2 == 0 else 0.001)
+        with lock:
+            events.append((k, -1))
+        return 10 * k
+
+    seen_ahead, ahead_threads = [], set()
+
+    def ahead(item, more):
+        seen_ahead.append(item)
+        ahead_threads.add(threading.current_thread().name)
+        return item + 1
+
+    pre = FramePrefetcher(seq, n, detect=detect, depth=2, ahead=ahead, workers=3)
+    got = [(k, item) for k, item, _ in pre]
+    pre.close()
+    assert got == [(k, 10 * k + 1) for k in range(n)]
+    assert seen_ahead == [10 * k for k in range(n)] and ahead_threads == {"eifslam-prefetch"}
+    assert seq.loaded == list(range(n)) and seq.threads == {"eifslam-prefetch"}  # decoded in order, in one thread
+    assert events[:2] == [(0, 1), (0, -1)]  # the first frame alone
+    running = np.cumsum([e for _, e in events])
+    assert running.max() >= 2  # then detections overlap
+    assert not pre.alive
 
 
 def test_prefetcher_hands_on_worker_errors():
@@ -336,7 +373,7 @@ def test_the_run_holds_opencv_to_its_thread_setting_and_gives_it_back(scene_fram
 
 @pytest.mark.parametrize("detector", ["orb", "sift"])
 def test_matches_made_ahead_give_the_front_ends_own_results(scene_frames, detector):
-    """Features from ``detect_ahead`` carry the matches with the previous detected frame
+    """Features from ``match_ahead`` carry the matches with the previous detected frame
     (ORB: exact brute-force search; SIFT: FLANN on indices seeded from the descriptors,
     built ahead too), which ``add_features`` uses in place of its own first search, with
     the same tracks; matches made against another frame than the front end's previous one
@@ -346,7 +383,7 @@ def test_matches_made_ahead_give_the_front_ends_own_results(scene_frames, detect
     a = FrontEnd(cam, cfg)
     res_a = [a.add_frame(im, k) for k, im in enumerate(ims) if k != 3]
     b = FrontEnd(cam, cfg)
-    ahead = [b.detect_ahead(im) for im in ims]
+    ahead = [b.match_ahead(b.detect(im)) for im in ims]
     assert ahead[0].ahead is None and all(f.ahead is not None and len(f.ahead.idx_new) > 20 for f in ahead[1:])
     res_b = [b.add_features(f, k) for k, f in enumerate(ahead) if k != 3]  # frame 4's were made against 3
     used = ["match_ahead" in r.timings_ms for r in res_b]
@@ -369,7 +406,7 @@ def test_matches_made_ahead_give_the_front_ends_own_results(scene_frames, detect
     # the worker makes the matching only for some frames (``match`` False: the consumer makes
     # it): the same tracks
     c = FrontEnd(cam, cfg)
-    mixed = [c.detect_ahead(im, match=k % 3 != 1) for k, im in enumerate(ims)]
+    mixed = [c.match_ahead(c.detect(im), match=k % 3 != 1) for k, im in enumerate(ims)]
     assert [f.ahead is not None for f in mixed] == [False, False, True, True, False, True]
     res_c = [c.add_features(f, k) for k, f in enumerate(mixed) if k != 3]
     for ra, rc in zip(res_a, res_c):

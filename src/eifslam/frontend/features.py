@@ -81,10 +81,10 @@ class Features:
         ``detect`` stage wherever the detection ran, e.g. in the runner's worker thread).
     ahead : AheadMatch or None
         Descriptor matches with the previous frame computed where the features were
-        detected (:meth:`~eifslam.frontend.frontend.FrontEnd.detect_ahead`), or None.
+        detected (:meth:`~eifslam.frontend.frontend.FrontEnd.match_ahead`), or None.
     index : DescriptorIndex or None
         The search index of ``descriptors`` built where the features were detected
-        (:meth:`~eifslam.frontend.frontend.FrontEnd.detect_ahead`), or None.
+        (:meth:`~eifslam.frontend.frontend.FrontEnd.match_ahead`), or None.
     """
 
     uv: Array

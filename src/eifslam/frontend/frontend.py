@@ -93,7 +93,7 @@ class FrontEnd:
         self._order: list[int] = []
         self._last_frame = np.zeros(0, np.int64)  # per raw track id: last frame seen in
         self._last_kp = np.zeros(0, np.int64)  # ... and the keypoint index there
-        self._ahead_last: Features | None = None  # detect_ahead's last features (its thread's)
+        self._ahead_last: Features | None = None  # match_ahead's last features (its thread's)
         self._contrast: float | None = None  # SIFT's contrast threshold of the run (see detect)
         self._contrast_lock = threading.Lock()
 
@@ -275,9 +275,10 @@ class FrontEnd:
                     self._contrast = run_contrast_threshold(image, n, self.camera, self.config)
         return self._contrast
 
-    def detect_ahead(self, image: np.ndarray, match: bool = True) -> Features:
-        """:meth:`detect`, plus, with ``match``, what depends on the new frame and the one
-        before it alone, so that a prefetch worker can make it: the new frame's search index
+    def match_ahead(self, feats: Features, match: bool = True) -> Features:
+        """What :meth:`add_features` would do first with the features of a new frame
+        (:meth:`detect`'s) that depends on them and the frame before them alone, so that a
+        prefetch worker can make it: with ``match``, the new frame's search index
         (``Features.index``, FLANN for float descriptors, seeded from the descriptors
         themselves), and the first search :meth:`add_features` makes, against the previous
         frame with every row free, with its epipolar RANSAC (``Features.ahead``; OpenCV's
@@ -285,7 +286,6 @@ class FrontEnd:
         made ahead itself and uses the matches only when its previous frame holds those
         descriptors, so the results are those of :meth:`detect` either way: ``match`` only
         says which thread does the work. One thread calls it, in frame order."""
-        feats = self.detect(image)
         previous, self._ahead_last = self._ahead_last, feats
         if not match:
             return feats

@@ -5,8 +5,8 @@ frame stops the loop; :meth:`Slam.finish` then ends the run as the
 configured mode says, and what was estimated so far is returned. Writing the outputs is
 the caller's job (:func:`eifslam.evaluation.outputs.run_to_folder`).
 
-The front end is pipelined (``config.runtime.prefetch`` frames ahead, 2 by default): a
-worker thread decodes the next images (``seq.load``) and detects their features
+The front end is pipelined (``config.runtime.prefetch`` frames ahead, 2 by default): worker
+threads decode the next images (``seq.load``, in order) and detect their features
 (``FrontEnd.detect``; OpenCV releases the GIL) while this thread matches, relates and
 fuses the current one. Detection depends on nothing but the image, and everything else
 runs in frame order in the calling thread, so the results are those of the sequential
@@ -16,10 +16,14 @@ loop (``prefetch=0``).
 from __future__ import annotations
 
 import contextlib
+import os
 import queue
 import sys
 import threading
 import time
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -131,31 +135,38 @@ def sequential_frames(seq, n: int, start: int = 0) -> Iterator[tuple[int, Any, f
 
 
 class FramePrefetcher:
-    """Decode and detect frames ahead in a worker thread (a bounded queue of ``depth``).
+    """Decode and detect frames ahead in worker threads (a bounded queue of ``depth``).
 
-    The worker runs ``seq.load(k)`` and then ``detect(image)`` for ``k = start .. n-1`` in
-    order and hands each result to the consumer through a queue holding at most
-    ``depth`` frames. It is a daemon thread and stops at the next frame (or within 0.1 s
-    when blocked on a full queue) once :meth:`close` is called, so an interrupted run
-    never hangs on it.
+    A sequencer thread decodes the frames in order (``seq.load(k)``) and hands each image to
+    one of ``workers`` threads that run ``detect(image)`` (the first frame alone, before any
+    other, so that whatever ``detect`` decides on the first image it sees is decided on the
+    run's first frame); it takes their results in frame order, runs ``ahead`` on each, and
+    hands them to the consumer through a queue holding at most ``depth`` frames. With two or more workers a frame's detection
+    overlaps the next one's, so on a sequence whose detection is slower than the rest of a
+    frame's work both cores detect. The threads stop at the next frame (or within 0.1 s
+    when blocked on a full queue) once :meth:`close` is called, so an interrupted run never
+    hangs on them.
 
     Parameters
     ----------
     seq : sequence
-        Anything with ``load(k)``; only the worker thread calls it.
+        Anything with ``load(k)``; only the sequencer thread calls it, in frame order.
     n : int
         One past the last frame.
     detect : callable
-        Image to features, safe to call from the worker thread
-        (:meth:`eifslam.frontend.FrontEnd.detect`).
+        Image to features, safe to call from several threads at once, the same image
+        giving the same features (:meth:`eifslam.frontend.FrontEnd.detect`).
     depth : int >= 1
         Frames decoded and detected ahead of the consumer.
     start : int
         The first frame.
-    ahead : bool
-        ``detect`` takes a second argument, whether to do more of the consumer's work
-        (:meth:`eifslam.frontend.FrontEnd.detect_ahead`'s ``match``): True while frames
-        wait in the queue (the consumer is the slower side).
+    ahead : callable, optional
+        ``ahead(features, more)``: what the consumer would do next with a frame's features
+        that depends on the frames before it only, called in frame order from one thread
+        (:meth:`eifslam.frontend.FrontEnd.match_ahead`); ``more`` is True while frames wait
+        in the queue (the consumer is the slower side, so the worker may do more of its work).
+    workers : int >= 1
+        Frames decoded and detected at once.
 
     Notes
     -----
@@ -164,17 +175,19 @@ class FramePrefetcher:
     :class:`~eifslam.errors.EifslamError` (the consumer's own detection then raises the
     same error where the sequential loop would); or the :class:`ImageError` of its
     decoding (skip the frame). ``wait_ms`` is how long the consumer waited for it. Any
-    other exception of the worker is re-raised in the consumer.
+    other exception of a worker is re-raised in the consumer.
     """
 
     _DONE = object()
 
-    def __init__(self, seq, n: int, detect: Callable[..., Any], depth: int = 2, start: int = 0,
-                 ahead: bool = False) -> None:
+    def __init__(self, seq, n: int, detect: Callable[[Any], Any], depth: int = 2, start: int = 0,
+                 ahead: Callable[[Any, bool], Any] | None = None, workers: int = 1) -> None:
         self._seq, self._n, self._detect, self._start = seq, int(n), detect, int(start)
-        self._ahead = bool(ahead)
+        self._ahead = ahead
         self._queue: queue.Queue = queue.Queue(maxsize=max(1, int(depth)))
         self._stop = threading.Event()
+        self._pool = ThreadPoolExecutor(max_workers=max(1, int(workers)), thread_name_prefix="eifslam-detect")
+        self._workers = max(1, int(workers))
         self._thread = threading.Thread(target=self._work, name="eifslam-prefetch", daemon=True)
         self._thread.start()
 
@@ -187,29 +200,67 @@ class FramePrefetcher:
                 continue
         return False
 
+    def _detect_image(self, image: Any) -> tuple[Any, BaseException | None, bool]:
+        """One frame's detection, in a worker: ``(item, error, detected)``, ``item`` and
+        ``error`` as the consumer receives them (see the class's notes)."""
+        if self._stop.is_set():
+            return None, None, False
+        try:
+            return self._detect(image), None, True
+        except EifslamError:
+            return image, None, False  # the consumer's track() raises it again, in order
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer thread
+            return None, exc, False
+
+    def _load(self, k: int) -> Future:
+        """Decode frame ``k`` here (frames are decoded in order, in one thread: a video is
+        read sequentially) and hand its detection to a worker; a failed decoding is a
+        result at once."""
+        try:
+            image = self._seq.load(k)
+        except ImageError as exc:
+            return _done((exc, None, False))
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer thread
+            return _done((None, exc, False))
+        return self._pool.submit(self._detect_image, image)
+
+    def _result(self, future: Future) -> tuple[Any, BaseException | None, bool] | None:
+        """A worker's result, or None once the prefetcher is closed."""
+        while not self._stop.is_set():
+            try:
+                return future.result(timeout=0.1)
+            except FutureTimeout:
+                continue
+        return None
+
     def _work(self) -> None:
+        pending: deque[Future] = deque()
+        submitted = self._start
         try:
             for k in range(self._start, self._n):
-                if self._stop.is_set():
+                # the first frame alone, then up to ``workers`` frames in flight
+                while submitted < self._n and len(pending) < (1 if k == self._start else self._workers):
+                    pending.append(self._load(submitted))
+                    submitted += 1
+                got = self._result(pending.popleft())
+                if got is None:
                     return
-                try:
-                    image = self._seq.load(k)
-                except ImageError as exc:
-                    if not self._put((k, exc, None)):
-                        return
-                    continue
-                try:
+                item, error, detected = got
+                if error is not None:
+                    self._put((-1, None, error))
+                    return
+                if self._ahead is not None and detected:
                     # frames waiting in the queue: the consumer is the slower side, so the
-                    # worker also makes what the detector's ``match`` hands over (the same
-                    # results wherever it is made); otherwise it detects only
-                    item: Any = self._detect(image, self._queue.qsize() > 0) if self._ahead else self._detect(image)
-                except EifslamError:
-                    item = image  # the consumer's track() raises it again, in order
+                    # worker also makes what the front end's match_ahead hands over (the
+                    # same results wherever it is made)
+                    item = self._ahead(item, self._queue.qsize() > 0)
                 if not self._put((k, item, None)):
                     return
         except BaseException as exc:  # noqa: BLE001 - handed to the consumer thread
             self._put((-1, None, exc))
             return
+        finally:
+            self._pool.shutdown(wait=False, cancel_futures=True)
         self._put((-1, self._DONE, None))
 
     def __iter__(self) -> Iterator[tuple[int, Any, float]]:
@@ -229,14 +280,23 @@ class FramePrefetcher:
             yield k, item, (time.perf_counter() - t0) * 1e3
 
     def close(self, timeout: float = 2.0) -> None:
-        """Stop the worker (it ends after the frame it is on) and wait for it up to ``timeout`` s."""
+        """Stop the threads (each ends after the frame it is on) and wait for them up to
+        ``timeout`` s."""
         self._stop.set()
         self._thread.join(timeout)
+        self._pool.shutdown(wait=True, cancel_futures=True)
 
     @property
     def alive(self) -> bool:
-        """Whether the worker thread is still running."""
+        """Whether the sequencer thread is still running."""
         return self._thread.is_alive()
+
+
+def _done(result: Any) -> Future:
+    """A future that already holds ``result``."""
+    f: Future = Future()
+    f.set_result(result)
+    return f
 
 
 def run_sequence(seq, config: SlamConfig, max_frames: int | None = None, scale: tuple | None = None,
@@ -328,15 +388,22 @@ def opencv_thread_count(config: SlamConfig, prefetch: int) -> int | None:
     return 1 if prefetch > 0 and config.frontend.flann_search else None
 
 
+def detect_workers(prefetch: int) -> int:
+    """Threads that detect at once in a run that prefetches ``prefetch`` frames: as many as
+    the frames it may hold ahead and the machine's cores, whichever is fewer (OpenCV's
+    detectors release the GIL, so they detect in parallel)."""
+    return max(1, min(int(prefetch), os.cpu_count() or 1))
+
+
 def _track_all(seq, slam: Slam, start: int, n: int, depth: int, scale: tuple | None, quiet: bool,
                on_frame: Callable[[TrackResult], None] | None,
                save_session: str | Path | None) -> RunResult:
-    detect = getattr(slam.frontend, "detect_ahead", None)
+    ahead = getattr(slam.frontend, "match_ahead", None)
     t0 = time.perf_counter()
     stopped = None
     bar = tqdm(total=max(n - start, 0), desc="eifslam", unit="frame", disable=quiet, file=sys.stderr)
-    pre = FramePrefetcher(seq, n, detect, depth, start, ahead=True) \
-        if depth > 0 and detect is not None and n > start else None
+    pre = FramePrefetcher(seq, n, slam.frontend.detect, depth, start, ahead=ahead, workers=detect_workers(depth)) \
+        if depth > 0 and ahead is not None and n > start else None
     wait_key = "load" if pre is None else "wait"
     try:
         for k, item, ms in (sequential_frames(seq, n, start) if pre is None else pre):
