@@ -155,7 +155,7 @@ class RuntimeConfig:
     """Settings of how a run uses the machine (section ``runtime``,
     :func:`~eifslam.system.runner.run_sequence`); they never change an estimate."""
 
-    prefetch: int = setting(2, "frames decoded and detected ahead in a worker thread (0: none)", Int(0))
+    prefetch: int = setting(2, "frames decoded and detected ahead in worker threads (0: none)", Int(0))
     blas_threads: int | None = setting(1, "threads of the BLAS library during a run (null: the library's "
                                           "setting); more only spin on the worker's core", Int(1, none=True))
     opencv_threads: int | str | None = setting("auto", "OpenCV's threads during a run: a number, auto (1 when "
