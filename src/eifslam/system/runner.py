@@ -141,9 +141,10 @@ class FramePrefetcher:
     one of ``workers`` threads that run ``detect(image)`` (the first frame alone, before any
     other, so that whatever ``detect`` decides on the first image it sees is decided on the
     run's first frame); it takes their results in frame order, runs ``ahead`` on each, and
-    hands them to the consumer through a queue holding at most ``depth`` frames. With two or more workers a frame's detection
-    overlaps the next one's, so on a sequence whose detection is slower than the rest of a
-    frame's work both cores detect. The threads stop at the next frame (or within 0.1 s
+    hands them to the consumer through a queue holding at most ``depth`` frames. While the
+    consumer waits (the queue is empty: detection is the slower side), up to ``workers``
+    frames are detected at once, so that on a sequence whose detection is slower than the
+    rest of a frame's work both cores detect; while frames wait in the queue, one. The threads stop at the next frame (or within 0.1 s
     when blocked on a full queue) once :meth:`close` is called, so an interrupted run never
     hangs on them.
 
@@ -236,10 +237,13 @@ class FramePrefetcher:
     def _work(self) -> None:
         pending: deque[Future] = deque()
         submitted = self._start
+        starved = False  # the queue was empty when the last frame was ready: the consumer waits
         try:
             for k in range(self._start, self._n):
-                # the first frame alone, then up to ``workers`` frames in flight
-                while submitted < self._n and len(pending) < (1 if k == self._start else self._workers):
+                # the first frame alone; then up to ``workers`` frames in flight while the
+                # consumer waits for frames (detection is the slower side), one otherwise
+                # (more would take the cores from the consumer)
+                while submitted < self._n and len(pending) < (self._workers if starved else 1):
                     pending.append(self._load(submitted))
                     submitted += 1
                 got = self._result(pending.popleft())
@@ -254,6 +258,7 @@ class FramePrefetcher:
                     # worker also makes what the front end's match_ahead hands over (the
                     # same results wherever it is made)
                     item = self._ahead(item, self._queue.qsize() > 0)
+                starved = self._queue.qsize() == 0
                 if not self._put((k, item, None)):
                     return
         except BaseException as exc:  # noqa: BLE001 - handed to the consumer thread
