@@ -29,6 +29,13 @@ def test_the_matrix_is_the_sum_of_every_block_whatever_the_folding(monkeypatch, 
             np.add.at(vec, ix, e)
         if step % 13 == 12:  # somebody reads I in between
             np.testing.assert_allclose(store.matrix().toarray(), dense, atol=1e-12)
+        if step % 7 == 3:  # or some of its rows, without summing its parts
+            R = store.rows()
+            rows = rng.choice(n, min(n, 5), replace=False)
+            Ir = R[rows]
+            assert Ir.format == "csr" and Ir.shape == (len(rows), n) and Ir.has_canonical_format
+            np.testing.assert_allclose(Ir.toarray(), dense[rows], atol=1e-12)
+            np.testing.assert_allclose(R.tocsr().toarray(), dense, atol=1e-12)
     I = store.matrix()
     assert I.shape == (n, n) and I.has_canonical_format
     np.testing.assert_allclose(I.toarray(), dense, atol=1e-12)

@@ -24,6 +24,7 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from .blocks import apply_blocks, block_entries, inverse_spd_blocks
+from .information import SummedRows
 from .recovery import SchurFactor, factorize_onto, feature_blocks, gram_by_blocks, reduced_onto
 
 Array = NDArray[np.float64]
@@ -73,13 +74,13 @@ class FeatureElimination:
                                                                 bool)])
         self._dirty[idx] = True
 
-    def update(self, I: sp.csr_matrix, i: Array, feat_starts: IntArray, pose_entries: IntArray) -> None:
+    def update(self, I: sp.csr_matrix | SummedRows, i: Array, feat_starts: IntArray, pose_entries: IntArray) -> None:
         """Make the kept sums those of the features starting at ``feat_starts``.
 
         Parameters
         ----------
-        I : (n, n) CSR
-            The information matrix now.
+        I : (n, n) CSR or SummedRows
+            The information matrix now (only rows are read).
         i : (n,)
             The information vector now.
         feat_starts : (F',) int
@@ -115,7 +116,7 @@ class FeatureElimination:
         self.G = sp.csr_matrix(self.G)
         self._dirty[:] = False
 
-    def onto(self, I: sp.csr_matrix, i: Array, mp: IntArray, mf: IntArray, pa: IntArray, pose_entries: IntArray,
+    def onto(self, I: sp.csr_matrix | SummedRows, i: Array, mp: IntArray, mf: IntArray, pa: IntArray, pose_entries: IntArray,
              block_start: IntArray) -> tuple[SchurFactor, Array, Array]:
         """A sparse rebuild's elimination of ``m = mp + mf`` onto the poses ``pa``
         (:func:`~eifslam.estimation.recovery.factorize_onto`), the features' part from the
@@ -123,7 +124,7 @@ class FeatureElimination:
 
         Parameters
         ----------
-        I, i : the information now, ``(n, n)`` CSR and ``(n,)``.
+        I, i : the information now, ``(n, n)`` CSR (or its parts, read by rows) and ``(n,)``.
         mp, mf, pa : int arrays
             Pose and feature entries eliminated, pose entries kept.
         pose_entries : (N,) int
@@ -136,7 +137,7 @@ class FeatureElimination:
         factor, P, b : as :func:`~eifslam.estimation.recovery.factorize_onto`.
         """
         if not (len(mf) and len(pa)):
-            return factorize_onto(I, mp, mf, pa, i)
+            return factorize_onto(I.tocsr() if isinstance(I, SummedRows) else I, mp, mf, pa, i)
         self.update(I, i, np.unique(block_start[mf]), pose_entries)
         pos = np.full(len(block_start), -1, np.int64)
         pos[pose_entries] = np.arange(len(pose_entries))

@@ -63,7 +63,7 @@ from numpy.typing import NDArray
 from scipy.linalg import cho_solve
 
 from ..errors import ConfigError, EstimatorError, SessionError
-from .information import InformationStore
+from .information import InformationStore, SummedRows
 from .elimination import FeatureElimination
 from .statedict import sub, take_ids, take_int
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout
@@ -547,7 +547,7 @@ class IncrementalRecovery:
         self.stats.rebuilds += 1
         self._valid = True
         n = self._map.n
-        I = info.matrix_csr()
+        I = info.rows()  # read by rows: the parts of I are not summed into one matrix
         i = np.asarray(info.vector[:n], dtype=float)
         isf, start = self._map.is_feature, self._map.start
         age = s - self._last[start]
@@ -578,7 +578,7 @@ class IncrementalRecovery:
         self.window.reset_to(pa, fa, P, bp, D, I[fa][:, pa].toarray(), i[fa].copy())
 
 
-    def _eliminate_undoably(self, I: sp.csr_matrix, i: Array, pa: IntArray, mf: IntArray,
+    def _eliminate_undoably(self, I: sp.csr_matrix | SummedRows, i: Array, pa: IntArray, mf: IntArray,
                             mp: IntArray) -> tuple[Array, Array]:
         """Eliminate features ``mf`` then poses ``mp`` from ``I x = i`` (CSR, ``(n, n)``)
         into two conditionals that can be undone (in part), as :meth:`_marginalise` would

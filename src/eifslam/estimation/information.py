@@ -170,6 +170,23 @@ class InformationStore:
         self._cached = base
         return base
 
+    def rows(self) -> "SummedRows":
+        """``I`` read by rows without summing its parts into one matrix: the waiting
+        triplets are summed into the recent part (as they would be anyway) and the main
+        and recent parts are read as CSR (their CSC arrays, ``I`` being symmetric, as in
+        :meth:`matrix_csr`). Taking some rows of the sum costs the non-zeros of those rows
+        only, where :meth:`matrix` first sums every non-zero of ``I`` (about 1 s and a
+        second copy of the matrix at the loop world's 35 M non-zeros)."""
+        n = self.dim
+        if self._pending:
+            r, c, v = self.pending_triplets()
+            self._rows, self._cols, self._vals, self._pending = [], [], [], 0
+            new = sp.csc_matrix((v, (r, c)), shape=(n, n))
+            del r, c, v
+            self._recent = new if self._recent is None else (_extend(self._recent, n) + new).tocsc()
+        parts = [_extend(self._cached, n)] + ([_extend(self._recent, n)] if self._recent is not None else [])
+        return SummedRows([sp.csr_matrix((C.data, C.indices, C.indptr), shape=C.shape) for C in parts])
+
     def matrix_csr(self) -> sp.csr_matrix:
         """``I`` as CSR without a format conversion: ``I`` is symmetric, so the arrays of
         its CSC form (:meth:`matrix`) read as CSR are ``I^T``, which equals ``I`` up to the
@@ -195,6 +212,36 @@ class InformationStore:
         self._recent = None
         self._cached = sp.csc_matrix(I)
         self._vec[: self.dim] = i
+
+
+class SummedRows:
+    """A sparse matrix kept as a sum of CSR parts of one shape, read by rows.
+
+    ``A[rows]`` (rows an integer array or slice) is the CSR matrix of those rows of the
+    sum, canonical (sorted indices, no duplicates); :meth:`tocsr` sums everything.
+
+    Parameters
+    ----------
+    parts : list of CSR, each ``(n, n)``, at least one.
+    """
+
+    def __init__(self, parts: list[sp.csr_matrix]) -> None:
+        if not parts:
+            raise ValueError("SummedRows needs at least one part")
+        self.parts = parts
+        self.shape = parts[0].shape
+
+    def __getitem__(self, rows) -> sp.csr_matrix:
+        out = self.parts[0][rows]
+        for p in self.parts[1:]:
+            out = out + p[rows]
+        out = sp.csr_matrix(out)
+        out.sum_duplicates()
+        return out
+
+    def tocsr(self) -> sp.csr_matrix:
+        """The whole sum as one CSR matrix."""
+        return self[np.arange(self.shape[0])] if len(self.parts) > 1 else sp.csr_matrix(self.parts[0])
 
 
 def _extend(A: sp.csc_matrix, n: int) -> sp.csc_matrix:

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from scipy.sparse.linalg import splu
 
 from ..errors import EstimatorError
+from .information import SummedRows
 from .blocks import apply_blocks, block_diagonal_csr, cholesky_blocks, gather_diagonal_blocks, inverse_spd_blocks
 
 Array = NDArray[np.float64]
@@ -209,13 +210,13 @@ class SparseSolve:
         return out
 
 
-def feature_blocks(I: sp.csr_matrix, feat_idx: IntArray, pose_idx: IntArray) -> tuple[Array, sp.csr_matrix]:
+def feature_blocks(I: sp.csr_matrix | SummedRows, feat_idx: IntArray, pose_idx: IntArray) -> tuple[Array, sp.csr_matrix]:
     """The features' 3x3 information blocks and their coupling to the poses, read from the
     features' rows of ``I`` in one pass (no column fancy-indexing of the sparse matrix).
 
     Parameters
     ----------
-    I : (n, n) CSR
+    I : (n, n) CSR, or :class:`~eifslam.estimation.information.SummedRows` (only rows are read)
     feat_idx : (3 F,) int
         State indices of the features, three per feature.
     pose_idx : (7 P,) int
@@ -268,7 +269,7 @@ def gram_by_blocks(B: sp.csr_matrix, Dinv: Array) -> sp.csr_matrix:
     return (Wb.T @ Wb).tocsr()
 
 
-def _marginal_by_solves(factor: SchurFactor, I: sp.csr_matrix, keep: IntArray, i: Array
+def _marginal_by_solves(factor: SchurFactor, I: sp.csr_matrix | SummedRows, keep: IntArray, i: Array
                         ) -> tuple[SchurFactor, Array, Array]:
     """:func:`factorize_onto`'s result from ``len(keep) + 1`` solves with ``factor``
     (:meth:`SchurFactor.project`)."""
@@ -322,14 +323,15 @@ def factorize_onto(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray, keep:
                         B.T @ y)
 
 
-def reduced_onto(I: sp.csr_matrix, pose_idx: IntArray, feat_idx: IntArray, keep: IntArray, i: Array,
+def reduced_onto(I: sp.csr_matrix | SummedRows, pose_idx: IntArray, feat_idx: IntArray, keep: IntArray, i: Array,
                  Dinv: Array, B: sp.csr_matrix, G: sp.spmatrix, g: Array) -> tuple[SchurFactor, Array, Array]:
     """:func:`factorize_onto` from the features' elimination made already (e.g. kept between
     rebuilds, :class:`~eifslam.estimation.elimination.FeatureElimination`).
 
     Parameters
     ----------
-    I, pose_idx, feat_idx, keep, i : as :func:`factorize_onto` (``keep`` non-empty).
+    I, pose_idx, feat_idx, keep, i : as :func:`factorize_onto` (``keep`` non-empty); ``I`` may be a
+        :class:`~eifslam.estimation.information.SummedRows` (only rows are read).
     Dinv : (F, 3, 3)
         Inverses of the information blocks of the features ``feat_idx`` (their order).
     B : CSR (3 F, len(pose_idx))
