@@ -589,6 +589,17 @@ def test_add_split_sums_to_what_add_gives():
         assert np.abs((R - store.matrix()).toarray()).max() <= 1e-12 * abs(store.matrix()).max()
 
 
+def _corridor_and_back() -> tuple[Slam, InformationFilter, int]:
+    """A filter-mode run down a 20-frame corridor and back to frame 5 (frames seeing
+    features the recovery marginalised on the way down): the Slam, its filter, the frames."""
+    c = corridor_scene(20, np.random.default_rng(11), points_per_metre=12.0)
+    back = np.r_[np.arange(20), np.arange(18, 4, -1)]
+    sc = SyntheticScene(c.camera, c.positions[back], c.quats[back], c.points)
+    fe = SyntheticFrontEnd(sc, 11, map_fraction=1.0)
+    f = InformationFilter(sc.camera, recovery="incremental", window=1)
+    return Slam(sc.camera, fe.slam_config().replace(smoothing={"mode": "filter"}), frontend=fe, backend=f), f, len(back)
+
+
 def test_zm_of_marginalised_features_wait_and_are_all_fused_at_the_end(monkeypatch):
     """On the way back down the corridor the frames see features the recovery has
     marginalised; where taking them back would cost a rebuild (forced here: on a short
@@ -596,13 +607,8 @@ def test_zm_of_marginalised_features_wait_and_are_all_fused_at_the_end(monkeypat
     them), and ``Slam.finish`` fuses every one of them, after which the estimate is the
     full solve of the information holding them all."""
     monkeypatch.setattr(IncrementalRecovery, "reactivation_affordable", lambda self, starts: False)
-    c = corridor_scene(20, np.random.default_rng(11), points_per_metre=12.0)
-    back = np.r_[np.arange(20), np.arange(18, 4, -1)]
-    sc = SyntheticScene(c.camera, c.positions[back], c.quats[back], c.points)
-    fe = SyntheticFrontEnd(sc, 11, map_fraction=1.0)
-    f = InformationFilter(sc.camera, recovery="incremental", window=1)
-    slam = Slam(sc.camera, fe.slam_config().replace(smoothing={"mode": "filter"}), frontend=fe, backend=f)
-    for k in range(len(sc.positions)):
+    slam, f, n_frames = _corridor_and_back()
+    for k in range(n_frames):
         slam.track(k)
     stored = sum(len(b) for b in f.store.features)
     assert f.incremental.stats.reactivations == 0 and f.incremental.stats.fallbacks == 0
@@ -621,12 +627,7 @@ def test_zm_fused_late_leave_their_features_out_of_the_window(monkeypatch):
     window, so their next ``Zm`` wait again instead of pulling the old poses into it."""
     monkeypatch.setattr(IncrementalRecovery, "reactivation_affordable", lambda self, starts: False)
     monkeypatch.setattr(IncrementalRecovery, "reactivation_flops", lambda self, plan: np.inf)  # as after a lap
-    c = corridor_scene(20, np.random.default_rng(11), points_per_metre=12.0)
-    back = np.r_[np.arange(20), np.arange(18, 4, -1)]
-    sc = SyntheticScene(c.camera, c.positions[back], c.quats[back], c.points)
-    fe = SyntheticFrontEnd(sc, 11, map_fraction=1.0)
-    f = InformationFilter(sc.camera, recovery="incremental", window=1)
-    slam = Slam(sc.camera, fe.slam_config().replace(smoothing={"mode": "filter"}), frontend=fe, backend=f)
+    slam, f, n_frames = _corridor_and_back()
     k = 0
     while slam.mapper.deferred < 30:
         slam.track(k)
