@@ -96,14 +96,18 @@ class InformationStore:
         holds :data:`MERGE_FRACTION` of its non-zeros."""
         if self._pending <= FOLD_TRIPLETS:
             return
+        self._fold()
+        if self._recent.nnz > MERGE_FRACTION * self._cached.nnz:
+            self.matrix()
+
+    def _fold(self) -> None:
+        """Sum the waiting triplets into the recent part."""
         n = self.dim
         r, c, v = self.pending_triplets()
         self._rows, self._cols, self._vals, self._pending = [], [], [], 0
         new = sp.csc_matrix((v, (r, c)), shape=(n, n))
         del r, c, v
         self._recent = new if self._recent is None else (_extend(self._recent, n) + new).tocsc()
-        if self._recent.nnz > MERGE_FRACTION * self._cached.nnz:
-            self.matrix()
 
     def _indices(self, idx: IntArray) -> NDArray:
         """State indices as stored in the triplets: 32-bit while the state allows (summing
@@ -179,11 +183,7 @@ class InformationStore:
         second copy of the matrix at the loop world's 35 M non-zeros)."""
         n = self.dim
         if self._pending:
-            r, c, v = self.pending_triplets()
-            self._rows, self._cols, self._vals, self._pending = [], [], [], 0
-            new = sp.csc_matrix((v, (r, c)), shape=(n, n))
-            del r, c, v
-            self._recent = new if self._recent is None else (_extend(self._recent, n) + new).tocsc()
+            self._fold()
         parts = [_extend(self._cached, n)] + ([_extend(self._recent, n)] if self._recent is not None else [])
         return SummedRows([sp.csr_matrix((C.data, C.indices, C.indptr), shape=C.shape) for C in parts])
 
@@ -241,7 +241,10 @@ class SummedRows:
 
     def tocsr(self) -> sp.csr_matrix:
         """The whole sum as one CSR matrix."""
-        return self[np.arange(self.shape[0])] if len(self.parts) > 1 else sp.csr_matrix(self.parts[0])
+        out = self.parts[0]
+        for p in self.parts[1:]:
+            out = out + p
+        return sp.csr_matrix(out)
 
 
 def _extend(A: sp.csc_matrix, n: int) -> sp.csc_matrix:
