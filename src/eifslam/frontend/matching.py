@@ -107,7 +107,7 @@ def guided_search(q: NDArray, uv_predicted: Array, t: NDArray, uv: Array, radius
     rows, first, count = np.unique(qi, return_index=True, return_counts=True)
     d1 = d[first]
     d2 = np.where(count > 1, d[np.minimum(first + 1, len(d) - 1)], np.inf)
-    ok = np.where(count > 1, d1 < ratio * d2, d1 < lone_bound)
+    ok = (d1 < lone_bound) & (d1 < ratio * d2)  # d2 is inf for a lone candidate
     return rows[ok], kj[first[ok]], d1[ok]
 
 
