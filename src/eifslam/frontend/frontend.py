@@ -498,9 +498,9 @@ class FrontEnd:
         Each track is looked for only inside the window of ``radius_px`` around where it is
         predicted (search by projection, :func:`~eifslam.frontend.matching.guided_search`):
         its descriptor (from its last observation) is compared with the frame's keypoints
-        in the window, and the nearest is taken when it passes the ratio test against the
-        second nearest of the window (a keypoint alone in its window: when nearer than
-        :func:`~eifslam.frontend.matching.lone_candidate_bound`) and started a new ``Ωm``
+        in the window, and the nearest is taken when it is nearer than
+        :func:`~eifslam.frontend.matching.lone_candidate_bound`, passes the ratio test
+        against the second nearest of the window (if any) and started a new ``Ωm``
         track in this frame. A keypoint goes to one track, the one with the nearest
         descriptor; its track is merged into the old one (so the map feature gets this
         measurement and the keypoint's measurements are never used twice).

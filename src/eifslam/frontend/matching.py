@@ -37,11 +37,12 @@ _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
 
 
 def lone_candidate_bound(descriptors: NDArray, ratio: float) -> float:
-    """The distance below which a keypoint alone in its search window is taken: ``ratio``
+    """The distance below which the nearest keypoint of a search window may be taken: ``ratio``
     times the median whole-frame second-nearest distance of descriptors of this kind
     (:data:`SECOND_NEAREST_SIFT` for float descriptors, :data:`SECOND_NEAREST_BIT_FRACTION`
-    of the bits of binary ones). A lone candidate passes where a ratio test against a
-    typical second-nearest keypoint of the frame would have passed it.
+    of the bits of binary ones). A candidate passes where a ratio test against a typical
+    second-nearest keypoint of the frame would have passed it; alone in its window, this
+    is its only test.
 
     Parameters
     ----------
@@ -70,9 +71,9 @@ def guided_search(q: NDArray, uv_predicted: Array, t: NDArray, uv: Array, radius
 
     The candidates of query ``i`` are the keypoints within ``radius_px`` of
     ``uv_predicted[i]`` (a k-d tree of the keypoints); descriptor distances are computed to
-    those only. The nearest candidate is kept when it passes Lowe's ratio test against the
-    second nearest inside the window, or, alone in its window, when its distance is below
-    ``lone_bound`` (:func:`lone_candidate_bound`).
+    those only. The nearest candidate is kept when its distance is below ``lone_bound``
+    (:func:`lone_candidate_bound`) and, when the window holds others, it passes Lowe's
+    ratio test against the second nearest inside the window.
 
     Parameters
     ----------
@@ -85,7 +86,7 @@ def guided_search(q: NDArray, uv_predicted: Array, t: NDArray, uv: Array, radius
     ratio : float
         Keep when ``d1 < ratio * d2`` (best and second-best candidates of the window).
     lone_bound : float
-        Keep a lone candidate when ``d1 < lone_bound``.
+        Keep only when ``d1 < lone_bound`` (the only test of a lone candidate).
 
     Returns
     -------
