@@ -223,9 +223,14 @@ def test_kitti_relative_poses_against_ground_truth(shared_dataset):
 @pytest.mark.parametrize("detector", ["sift", "orb"])
 def test_reobserve_finds_lost_map_tracks_where_predicted_only(texture, detector):
     """Frame 2 shows frame 0's view again but tracking (window 1) only sees frame 1, an
-    unrelated view: every keypoint starts a new track. Guided matching with the right
-    predictions gives most map tracks their old ids back; predictions 40 px off give none."""
-    def run(offset_px: float) -> tuple[int, int, np.ndarray, np.ndarray]:
+    unrelated view: every keypoint starts a new track. The guided search (radius 5 px)
+    gives most map tracks their old ids back, on their own keypoints, when predicted where
+    they are or 4.2 px off. Predicted 5.7 px off, the track's own keypoint is just outside
+    the window: SIFT finds almost none, ORB mostly the same corners detected at another
+    pyramid level (a few pixels from the track's own); predicted 40 px off, almost none."""
+    def run(offset_px: float) -> tuple[int, int, np.ndarray]:
+        """Tracks found, map tracks of frame 0, and the distances of the found keypoints to
+        the tracks' own."""
         fe = FrontEnd(CAM, FrontEndConfig(detector=detector, match_window=1, max_features=1500))
         a = _rotated_view(texture, 0.0)
         fe.add_frame(a, 0)
@@ -236,12 +241,19 @@ def test_reobserve_finds_lost_map_tracks_where_predicted_only(texture, detector)
         found = fe.reobserve(2, ids0, uv0 + offset_px, radius_px=5.0)
         ids2, uv2 = fe.map_observations(2)
         back = np.isin(ids2, ids0)
-        return found, len(ids0), ids2[back], uv2[back], ids0, uv0
+        assert back.sum() == found
+        where = {t: u for t, u in zip(ids0.tolist(), uv0)}
+        return found, len(ids0), np.array([np.linalg.norm(where[t] - u) for t, u in zip(ids2[back].tolist(),
+                                                                                        uv2[back])])
 
-    found, n, ids_back, uv_back, ids0, uv0 = run(0.0)
-    assert 0.6 * n <= found <= n and len(ids_back) == found
-    where = {t: u for t, u in zip(ids0.tolist(), uv0)}
-    assert np.median([np.linalg.norm(where[t] - u) for t, u in zip(ids_back.tolist(), uv_back)]) < 0.5
+    for offset in (0.0, 3.0):
+        found, n, dist = run(offset)
+        assert 0.6 * n <= found <= n and np.median(dist) < 0.5
+    found, n, dist = run(4.0)
+    if detector == "sift":
+        assert found <= 0.02 * n
+    else:
+        assert found <= 0.3 * n and np.median(dist) < 3.0
     assert run(40.0)[0] <= 0.02 * n
 
 

@@ -1,6 +1,7 @@
 """Descriptor matching: a frame's index built once and reused gives the matches
 the plain matcher gives; rows that are not free are never matched; binary descriptors are
-searched exactly; a seeded index is the same whenever it is built."""
+searched exactly; a seeded index is the same whenever it is built; the guided search finds
+a descriptor near its prediction only, with the ratio test inside its window."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from eifslam.frontend.matching import DescriptorIndex, DescriptorMatcher
+from eifslam.frontend.matching import (DescriptorIndex, DescriptorMatcher, guided_search, lone_candidate_bound,
+                                      row_distances)
 
 
 def _pair(rng, n=600, shared=400, dim=128, noise=0.05, binary=False):
@@ -113,3 +115,71 @@ def test_a_seeded_index_is_the_same_whenever_it_is_built():
     assert not np.array_equal(out[0], out[2])  # (the trees do depend on the generator)
 
 
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_row_distances_are_l2_or_hamming(binary):
+    rng = np.random.default_rng(5)
+    a, b, _ = _pair(rng, n=50, shared=20, binary=binary)
+    norm = cv2.NORM_HAMMING if binary else cv2.NORM_L2
+    ref = [cv2.norm(x, y, norm) for x, y in zip(a, b)]
+    np.testing.assert_allclose(row_distances(a, b), ref, rtol=1e-5)
+
+
+def _guided_scene(binary: bool):
+    """Keypoints on a 20 px grid with unrelated descriptors (binary ones of 512 bits, whose
+    unrelated distances vary little), and queries that are noisy copies of the first 30
+    keypoints' descriptors."""
+    rng = np.random.default_rng(11)
+    xs, ys = np.meshgrid(np.arange(10.0, 630.0, 20.0), np.arange(10.0, 470.0, 20.0))
+    uv = np.stack([xs.ravel(), ys.ravel()], 1)
+    if binary:
+        t = rng.integers(0, 256, (len(uv), 64), dtype=np.uint8)
+        q = t[:30].copy()
+    else:
+        q, t, _ = _pair(rng, n=len(uv), shared=0)
+        q = q[:30].copy()
+    if binary:
+        flips = rng.random((30, t.shape[1] * 8)) < 0.05
+        q[:] = np.packbits(np.unpackbits(t[:30], axis=1) ^ flips, axis=1)
+    else:
+        q[:] = t[:30] + rng.normal(0.0, 0.02, (30, t.shape[1])).astype(np.float32)
+    return q, t, uv
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_guided_search_finds_a_descriptor_near_its_prediction_only(binary):
+    """Predicted 4 px off, each query finds its own keypoint (alone in the window of 12 px,
+    and nearer than the bound); predicted 26 or 30 px off, its own keypoint is outside the
+    window and the dissimilar keypoints inside are refused: one alone by the bound, two
+    by the ratio test."""
+    q, t, uv = _guided_scene(binary)
+    lone = 0.8 * np.median(row_distances(t[:30], t[30:60]))  # the ratio of unrelated distances
+    rows, kp, dist = guided_search(q, uv[:30] + [4.0, 0.0], t, uv, 12.0, 0.8, lone)
+    np.testing.assert_array_equal(rows, np.arange(30))
+    np.testing.assert_array_equal(kp, np.arange(30))
+    np.testing.assert_allclose(dist, row_distances(q, t[:30]))
+    for off in (26.0, 30.0):
+        assert len(guided_search(q, uv[:30] + [off, 0.0], t, uv, 12.0, 0.8, lone)[0]) == 0
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_guided_search_lone_candidates_and_ambiguous_windows(binary):
+    """A keypoint alone in its window is taken when nearer than the bound, refused when not;
+    two keypoints of the same descriptor in one window fail the ratio test."""
+    q, t, uv = _guided_scene(binary)
+    d_true = row_distances(q[:5], t[:5])
+    rows, kp, _ = guided_search(q[:5], uv[:5] + [0.0, 3.0], t, uv, 5.0, 0.8, 2.0 * d_true.max())
+    np.testing.assert_array_equal(kp, np.arange(5))
+    assert len(guided_search(q[:5], uv[:5] + [0.0, 3.0], t, uv, 5.0, 0.8, 0.5 * d_true.min())[0]) == 0
+    t2 = t.copy()
+    t2[1] = t2[0]  # keypoint 1 (20 px to the right) looks like keypoint 0
+    rows, _, _ = guided_search(q[:1], uv[:1] + [10.0, 0.0], t2, uv, 12.0, 0.8, 1e9)
+    assert len(rows) == 0
+    rows, kp, _ = guided_search(q[:1], uv[:1] + [-2.0, 0.0], t2, uv, 12.0, 0.8, 1e9)  # 1 outside
+    assert kp.tolist() == [0]
+
+
+def test_lone_candidate_bound_is_the_ratio_of_a_typical_second_nearest():
+    assert lone_candidate_bound(np.zeros((3, 128), np.float32), 0.8) == pytest.approx(240.0)
+    assert lone_candidate_bound(np.zeros((3, 32), np.uint8), 0.8) == pytest.approx(0.8 * 44.0)

@@ -35,7 +35,8 @@ from ..errors import EstimatorError, SessionError
 from ..estimation.statedict import check_index, sub, take, take_ids
 from .config import FrontEndConfig
 from .features import AheadMatch, Features, detect_features, make_detector, run_contrast_threshold
-from .matching import DescriptorIndex, DescriptorMatcher, essential_ransac, homography_ransac
+from .matching import (DescriptorIndex, DescriptorMatcher, essential_ransac, guided_search, homography_ransac,
+                       lone_candidate_bound)
 from .relative_pose import estimate_relative_pose
 from .results import FrameFeatures, FrameResult, Reason, RelativePoseResult
 from .split import assign_to_map
@@ -492,13 +493,16 @@ class FrontEnd:
     # ------------------------------------------------------------ re-association
     def reobserve(self, frame_id: int, track_ids: IntArray, uv_predicted: Array, radius_px: float,
                   ratio: float | None = None) -> int:
-        """Guided matching: find known ``Ωm`` tracks again in a frame where tracking lost them.
+        """Guided search: find known ``Ωm`` tracks again in a frame where tracking lost them.
 
-        Each track's descriptor (from its last observation) is matched against all the
-        frame's keypoints (the front end's matcher: FLANN or Hamming); the nearest is
-        taken when it passes the ratio test against the second nearest, lies within
-        ``radius_px`` of where the track is predicted, and started a new ``Ωm`` track in
-        this frame, which is then merged into the old track (so the map feature gets this
+        Each track is looked for only inside the window of ``radius_px`` around where it is
+        predicted (search by projection, :func:`~eifslam.frontend.matching.guided_search`):
+        its descriptor (from its last observation) is compared with the frame's keypoints
+        in the window, and the nearest is taken when it is nearer than
+        :func:`~eifslam.frontend.matching.lone_candidate_bound`, passes the ratio test
+        against the second nearest of the window (if any) and started a new ``Ωm``
+        track in this frame. A keypoint goes to one track, the one with the nearest
+        descriptor; its track is merged into the old one (so the map feature gets this
         measurement and the keypoint's measurements are never used twice).
 
         Parameters
@@ -523,7 +527,7 @@ class FrontEnd:
         fr = self._get(fid)
         track_ids = np.asarray(track_ids, np.int64).reshape(-1)
         uv_predicted = np.asarray(uv_predicted, float).reshape(-1, 2)
-        if len(track_ids) == 0 or fid not in self._desc or len(fr.feats) < 2:
+        if len(track_ids) == 0 or fid not in self._desc or len(fr.feats) == 0:
             return 0
         ratio = self._matcher.ratio if ratio is None else float(ratio)
         lf, lk = self._last_frame[track_ids], self._last_kp[track_ids]
@@ -531,31 +535,25 @@ class FrontEnd:
         track_ids, uv_predicted, lf, lk = track_ids[have], uv_predicted[have], lf[have], lk[have]
         if len(track_ids) == 0:
             return 0
-        # the frame's index, kept from matching (its descriptors as searched)
-        index = self._index[fid] if fid in self._index else self._built_index(self._searchable(self._desc[fid]))
-        D = np.empty((len(lf), index.descriptors.shape[1]), index.descriptors.dtype)  # each track's, where last seen
+        frame_desc = self._searchable(self._desc[fid])  # SIFT's as floats: L2, not Hamming
+        D = np.empty((len(lf), frame_desc.shape[1]), frame_desc.dtype)  # each track's, where last seen
         for f in np.unique(lf).tolist():
             rows = lf == f
             D[rows] = self._desc[f][lk[rows]]
-        # Lowe's ratio test over the whole frame (the radius only checks where the nearest
-        # descriptor is): nearest and second-nearest keypoint of each track's descriptor
-        nn, dd = index.knn(D, 2)
-        two = nn[:, 1] >= 0
-        best = np.where(two, nn[:, 0], 0)
-        d1 = np.where(two, dd[:, 0], np.inf)
-        d2 = np.where(two, dd[:, 1], 0.0)
-        ok = (d1 < ratio * d2) & (np.linalg.norm(fr.feats.uv[best] - uv_predicted, axis=1) <= radius_px)
+        rows, best, d1 = guided_search(D, uv_predicted, frame_desc, fr.feats.uv, radius_px, ratio,
+                                       lone_candidate_bound(frame_desc, ratio))
         kid = self._tracks.resolve(fr.raw_ids)
         fresh = self._tracks.in_map(kid) & (self._tracks.length(kid) == 1)
-        ok &= fresh[best]
+        ok = fresh[best]
+        rows, best, d1 = rows[ok], best[ok], d1[ok]
         # a keypoint goes to one track only: the closest descriptor wins
-        cand = np.flatnonzero(ok)
-        cand = cand[np.argsort(d1[cand])]
-        _, first = np.unique(best[cand], return_index=True)
+        order = np.argsort(d1, kind="stable")
+        _, first = np.unique(best[order], return_index=True)
         found = 0
-        for i in cand[np.sort(first)]:
-            if self._tracks.merge(int(track_ids[i]), int(kid[best[i]])):
-                self._last_frame[track_ids[i]], self._last_kp[track_ids[i]] = fid, best[i]
+        for i in order[np.sort(first)]:
+            t, b = int(track_ids[rows[i]]), int(best[i])
+            if self._tracks.merge(t, int(kid[b])):
+                self._last_frame[t], self._last_kp[t] = fid, b
                 found += 1
         return found
 

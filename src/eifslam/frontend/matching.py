@@ -12,17 +12,104 @@ import zlib
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["DescriptorIndex", "DescriptorMatcher", "essential_ransac", "homography_ransac"]
+__all__ = ["DescriptorIndex", "DescriptorMatcher", "essential_ransac", "guided_search", "homography_ransac",
+           "lone_candidate_bound", "row_distances"]
 
 #: Neighbours searched in a prebuilt index of all rows to find the nearest free ones.
 FREE_SEARCH = 8
 
 _EMPTY = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+
+#: Median distance of a descriptor to its second-nearest keypoint of a whole frame,
+#: measured with tracked keypoints on a hand-held and a rendered sequence: SIFT (L2, the
+#: descriptors' norm is 512) 300 on both; ORB (Hamming) 44 of its 256 bits, scaled here
+#: by the bits of other binary descriptors.
+SECOND_NEAREST_SIFT = 300.0
+SECOND_NEAREST_BIT_FRACTION = 44.0 / 256.0
+
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
+
+
+def lone_candidate_bound(descriptors: NDArray, ratio: float) -> float:
+    """The distance below which the nearest keypoint of a search window may be taken: ``ratio``
+    times the median whole-frame second-nearest distance of descriptors of this kind
+    (:data:`SECOND_NEAREST_SIFT` for float descriptors, :data:`SECOND_NEAREST_BIT_FRACTION`
+    of the bits of binary ones). A candidate passes where a ratio test against a typical
+    second-nearest keypoint of the frame would have passed it; alone in its window, this
+    is its only test.
+
+    Parameters
+    ----------
+    descriptors : (N, D) ndarray
+        ``uint8`` binary or float descriptors (only the kind and width are used).
+    ratio : float
+        Lowe's ratio.
+    """
+    if descriptors.dtype == np.uint8:
+        return float(ratio) * SECOND_NEAREST_BIT_FRACTION * 8 * descriptors.shape[1]
+    return float(ratio) * SECOND_NEAREST_SIFT
+
+
+def row_distances(a: NDArray, b: NDArray) -> Array:
+    """Distances ``(P,)`` between the rows of ``a`` and ``b`` (both ``(P, D)``): Hamming for
+    ``uint8`` binary descriptors, L2 for float ones."""
+    if a.dtype == np.uint8:
+        return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=1, dtype=np.int64).astype(np.float64)
+    diff = np.asarray(a, np.float32) - np.asarray(b, np.float32)
+    return np.sqrt(np.einsum("ij,ij->i", diff, diff, dtype=np.float64))
+
+
+def guided_search(q: NDArray, uv_predicted: Array, t: NDArray, uv: Array, radius_px: float, ratio: float,
+                  lone_bound: float) -> tuple[IntArray, IntArray, Array]:
+    """Search by projection: each query descriptor among the keypoints near its prediction.
+
+    The candidates of query ``i`` are the keypoints within ``radius_px`` of
+    ``uv_predicted[i]`` (a k-d tree of the keypoints); descriptor distances are computed to
+    those only. The nearest candidate is kept when its distance is below ``lone_bound``
+    (:func:`lone_candidate_bound`) and, when the window holds others, it passes Lowe's
+    ratio test against the second nearest inside the window.
+
+    Parameters
+    ----------
+    q : (M, D) query descriptors.
+    uv_predicted : (M, 2) pixels where each query is expected.
+    t : (N, D) the keypoints' descriptors, of the same kind as ``q``.
+    uv : (N, 2) the keypoints' pixels.
+    radius_px : float
+        Search radius, pixels.
+    ratio : float
+        Keep when ``d1 < ratio * d2`` (best and second-best candidates of the window).
+    lone_bound : float
+        Keep only when ``d1 < lone_bound`` (the only test of a lone candidate).
+
+    Returns
+    -------
+    rows : (K,) int64 query rows that found a keypoint, ascending.
+    kp : (K,) int64 their keypoints (a keypoint may be the nearest of several queries).
+    dist : (K,) float64 their descriptor distances.
+    """
+    empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    if len(q) == 0 or len(t) == 0:
+        return empty
+    pairs = cKDTree(np.asarray(uv_predicted, float)).sparse_distance_matrix(
+        cKDTree(np.asarray(uv, float)), float(radius_px), output_type="ndarray")
+    if len(pairs) == 0:
+        return empty
+    qi, kj = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+    d = row_distances(q[qi], t[kj])
+    order = np.lexsort((kj, d, qi))  # by query, then distance (ties: lower keypoint)
+    qi, kj, d = qi[order], kj[order], d[order]
+    rows, first, count = np.unique(qi, return_index=True, return_counts=True)
+    d1 = d[first]
+    d2 = np.where(count > 1, d[np.minimum(first + 1, len(d) - 1)], np.inf)
+    ok = (d1 < lone_bound) & (d1 < ratio * d2)  # d2 is inf for a lone candidate
+    return rows[ok], kj[first[ok]], d1[ok]
 
 
 class DescriptorIndex:
