@@ -240,9 +240,10 @@ class InformationFilter:
         self._fuse(factors.scale_prior(self.layout, self.x, fa, fb, d, self.config.scale_prior_sigma))
 
     # -- fusion (paper eq. 8) -----------------------------------------------------------
-    def _fuse(self, lin: Linearised) -> None:
-        """``I += J^T W J``, ``i += J^T W (innov + J x)`` for a linearised batch."""
-        self.add_information(lin.idx, *lin.information(self.x))
+    def _fuse(self, lin: Linearised, measurement: bool = True) -> None:
+        """``I += J^T W J``, ``i += J^T W (innov + J x)`` for a linearised batch
+        (``measurement`` as in :meth:`add_information`)."""
+        self.add_information(lin.idx, *lin.information(self.x), measurement=measurement)
 
     def add_information(self, idx, Lam: Array, eta: Array, measurement: bool = True) -> None:
         """Add blocks ``Lam (N, k, k)`` to ``I`` and ``eta (N, k)`` to ``i`` at ``idx (N, k)``;
@@ -297,7 +298,7 @@ class InformationFilter:
         ok, idx, J, W, innov, _ = self.linearise_features(obs, gate)
         if not np.all(ok):
             obs, idx, J, W, innov = obs.subset(ok), idx[ok], J[ok], W[ok], innov[ok]
-        self.add_information(idx, *Linearised(idx, J, W, innov).information(self.x), measurement=recent)
+        self._fuse(Linearised(idx, J, W, innov), measurement=recent)
         if store and len(obs):
             self.store.features.append(obs)
             if self.online is not None:
