@@ -9,8 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from eifslam.frontend.matching import (DescriptorIndex, DescriptorMatcher, guided_search, lone_candidate_bound,
-                                      row_distances)
+from eifslam.frontend.matching import (MAX_RADIUS_PX, MIN_RADIUS_PX, DescriptorIndex, DescriptorMatcher,
+                                      ImageMotion, guided_search, image_motion, lone_candidate_bound, row_distances,
+                                      windowed_match)
 
 
 def _pair(rng, n=600, shared=400, dim=128, noise=0.05, binary=False):
@@ -183,3 +184,94 @@ def test_guided_search_lone_candidates_and_ambiguous_windows(binary):
 def test_lone_candidate_bound_is_the_ratio_of_a_typical_second_nearest():
     assert lone_candidate_bound(np.zeros((3, 128), np.float32), 0.8) == pytest.approx(240.0)
     assert lone_candidate_bound(np.zeros((3, 32), np.uint8), 0.8) == pytest.approx(0.8 * 44.0)
+
+
+def _moving_keypoints(rng, n=400, flow=(14.0, -6.0)):
+    """An old frame of ``n`` keypoints with unrelated float descriptors of SIFT's norm
+    (512, so that the lone-candidate bound applies as to SIFT's), and a new frame
+    where 300 of them moved by ``flow`` (1 px noise; descriptors noisy copies, rows
+    shuffled) and 100 unrelated keypoints appeared. Returns the old and new descriptors
+    and pixels and the true old row of each new row (-1 for none)."""
+    uv_old = rng.uniform([0, 0], [640, 480], (n, 2))
+    _, d_old, _ = _pair(rng, n=n, shared=0)
+    src = rng.permutation(n)[:300]
+    d_new = np.concatenate([d_old[src] + rng.normal(0, 0.02, (300, d_old.shape[1])).astype(np.float32),
+                            rng.random((100, d_old.shape[1])).astype(np.float32)])
+    uv_new = np.concatenate([uv_old[src] + flow + rng.normal(0, 1.0, (300, 2)), rng.uniform([0, 0], [640, 480], (100, 2))])
+    truth = np.concatenate([src, np.full(100, -1)])
+
+    def sift_norm(d):
+        return (512.0 * d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+
+    return sift_norm(d_old), uv_old, sift_norm(d_new), uv_new, truth
+
+
+def test_windowed_match_finds_the_keypoints_where_the_motion_predicts_them():
+    """Predicted by their motion, the moved keypoints are found again, every match right;
+    predicted where they were (the motion 15 px off) with an 8 px window, almost none is
+    (a window without the right keypoint holds only unrelated ones, refused); rows that are
+    not free are never matched."""
+    rng = np.random.default_rng(5)
+    d_old, uv_old, d_new, uv_new, truth = _moving_keypoints(rng)
+    ia, ib = windowed_match(d_new, uv_new, d_old, uv_old + [14.0, -6.0], 8.0, 0.8)
+    assert np.all(truth[ia] == ib) and len(ia) >= 0.95 * 300
+    assert np.all(np.diff(ia) > 0) and len(np.unique(ib)) == len(ib)
+    ia, ib = windowed_match(d_new, uv_new, d_old, uv_old, 8.0, 0.8)
+    assert len(ia) <= 3
+    free_new, free_old = rng.random(len(d_new)) < 0.5, rng.random(len(d_old)) < 0.5
+    ia, ib = windowed_match(d_new, uv_new, d_old, uv_old + [14.0, -6.0], 8.0, 0.8, free_new, free_old)
+    assert np.all(free_new[ia]) and np.all(free_old[ib]) and np.all(truth[ia] == ib)
+    both = free_new & (truth >= 0) & free_old[np.maximum(truth, 0)]
+    assert len(ia) >= 0.95 * both.sum()
+
+
+def test_windowed_match_keeps_mutual_nearest_neighbours_only():
+    """Two new keypoints near one old keypoint, both passing their own tests: the old one
+    goes to the nearer descriptor; and a new keypoint whose nearest old keypoint prefers
+    another new keypoint (which failed its ratio test) is not matched."""
+    d_old = np.eye(4, 16, dtype=np.float32) * 10.0
+    uv_old = np.array([[100.0, 100.0], [300.0, 300.0], [500.0, 100.0], [600.0, 400.0]])
+    d_new = np.stack([d_old[0] + 0.1, d_old[0] + 0.5]).astype(np.float32)
+    d_new[1, 5] += 0.5
+    uv_new = np.array([[101.0, 100.0], [99.0, 101.0]])
+    ia, ib = windowed_match(d_new, uv_new, d_old, uv_old, 5.0, 0.8)
+    assert ia.tolist() == [0] and ib.tolist() == [0]
+    # new 0 is nearest to old 0 but ambiguous (old 4 alike, in its window): old 0 is then
+    # the nearest of new 1 too, which it prefers less
+    d_old2 = np.concatenate([d_old, d_old[:1] + 0.05]).astype(np.float32)
+    uv_old2 = np.concatenate([uv_old, [[103.0, 100.0]]])
+    uv_new2 = np.array([[101.0, 100.0], [96.0, 100.0]])
+    ia, ib = windowed_match(d_new, uv_new2, d_old2, uv_old2, 5.0, 0.8)
+    assert 1 not in ia.tolist()
+
+
+def test_image_motion_is_the_matches_displacement_and_its_prediction_error():
+    """Matched keypoints move by their own displacement, the others by their matched
+    neighbours' median. The radius is the 99% quantile of how far the matches landed from
+    the previous prediction, at least its lower bound, and infinite (no window) without a
+    prediction or when it missed by more than the upper bound. The reference is the matches
+    of the last whole-frame search. No motion from fewer than five matches."""
+    rng = np.random.default_rng(2)
+    uv_prev = rng.uniform([0, 0], [640, 480], (200, 2))
+    rows = np.arange(150)
+    uv = uv_prev.copy()
+    uv[rows] += [10.0, 3.0]
+    uv[150:] = rng.uniform([0, 0], [640, 480], (50, 2))
+    m0 = image_motion(uv, uv_prev, rows, rows, None, whole_frame=True)
+    np.testing.assert_allclose(m0.flow, np.tile([10.0, 3.0], (200, 1)))
+    assert m0.radius_px == np.inf and m0.reference == 150
+    err = np.abs(rng.normal(0.0, 6.0, 150))  # how far the previous prediction was off, along x
+    predicted = np.tile([10.0, 3.0], (200, 1))
+    predicted[rows, 0] -= err
+    previous = ImageMotion(predicted, 30.0, 400)
+    m1 = image_motion(uv, uv_prev, rows, rows, previous, whole_frame=True)
+    assert m1.radius_px == pytest.approx(np.clip(np.quantile(err, 0.99), MIN_RADIUS_PX, MAX_RADIUS_PX))
+    assert m1.reference == 150
+    m2 = image_motion(uv, uv_prev, rows, rows, previous, whole_frame=False)
+    assert (m2.radius_px, m2.reference) == (m1.radius_px, 400)
+    np.testing.assert_allclose(m2.flow, m0.flow)
+    still = ImageMotion(np.tile([10.0, 3.0], (200, 1)), 20.0, 150)
+    assert image_motion(uv, uv_prev, rows, rows, still, whole_frame=True).radius_px == MIN_RADIUS_PX
+    jolt = ImageMotion(np.tile([10.0 + 1.5 * MAX_RADIUS_PX, 3.0], (200, 1)), 20.0, 150)
+    assert image_motion(uv, uv_prev, rows, rows, jolt, whole_frame=True).radius_px == np.inf
+    assert image_motion(uv, uv_prev, rows[:4], rows[:4], None, whole_frame=True) is None

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from ..geometry.camera import PinholeCamera
 from ..errors import ConfigError, ImageError
 from .config import FrontEndConfig
-from .matching import DescriptorIndex
+from .matching import DescriptorIndex, ImageMotion
 from .split import laplacian_sign
 
 Array = NDArray[np.float64]
@@ -47,6 +47,9 @@ class AheadMatch:
     inliers : (M,) bool or None
         Which matches pass the epipolar RANSAC of the front end's config; None when it
         was not run (fewer matches than ``min_matches``).
+    motion_previous : ImageMotion or None
+        The previous frame's motion that predicted where to search (the very object: the
+        front end uses the matches only when it holds this one for its previous frame).
     """
 
     previous: NDArray
@@ -54,6 +57,7 @@ class AheadMatch:
     idx_previous: NDArray[np.int64]
     ms: float = 0.0
     inliers: NDArray[np.bool_] | None = None
+    motion_previous: ImageMotion | None = None
 
 
 @dataclass(frozen=True)
@@ -85,6 +89,10 @@ class Features:
     index : DescriptorIndex or None
         The search index of ``descriptors`` built where the features were detected
         (:meth:`~eifslam.frontend.frontend.FrontEnd.match_ahead`), or None.
+    motion : ImageMotion or None
+        How the keypoints moved since the frame before (set when they are matched with it:
+        :meth:`~eifslam.frontend.frontend.FrontEnd.match_ahead` or ``add_features``), to
+        predict where they are in the next frames; None before.
     """
 
     uv: Array
@@ -97,6 +105,7 @@ class Features:
     detect_ms: float = 0.0
     ahead: AheadMatch | None = None
     index: DescriptorIndex | None = None
+    motion: ImageMotion | None = None
 
     def __len__(self) -> int:
         return int(len(self.uv))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import threading
 import zlib
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -18,8 +19,8 @@ from scipy.spatial import cKDTree
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["DescriptorIndex", "DescriptorMatcher", "essential_ransac", "guided_search", "homography_ransac",
-           "lone_candidate_bound", "row_distances"]
+__all__ = ["DescriptorIndex", "DescriptorMatcher", "ImageMotion", "essential_ransac", "guided_search",
+           "homography_ransac", "image_motion", "lone_candidate_bound", "row_distances", "windowed_match"]
 
 #: Neighbours searched in a prebuilt index of all rows to find the nearest free ones.
 FREE_SEARCH = 8
@@ -60,13 +61,16 @@ def row_distances(a: NDArray, b: NDArray) -> Array:
     """Distances ``(P,)`` between the rows of ``a`` and ``b`` (both ``(P, D)``): Hamming for
     ``uint8`` binary descriptors, L2 for float ones."""
     if a.dtype == np.uint8:
-        return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=1, dtype=np.int64).astype(np.float64)
+        x = np.bitwise_xor(a, b)
+        if hasattr(np, "bitwise_count") and x.shape[1] % 8 == 0:  # NumPy >= 2: eight bytes at a time
+            return np.bitwise_count(np.ascontiguousarray(x).view(np.uint64)).sum(axis=1, dtype=np.int64).astype(np.float64)
+        return _POPCOUNT[x].sum(axis=1, dtype=np.int64).astype(np.float64)
     diff = np.asarray(a, np.float32) - np.asarray(b, np.float32)
     return np.sqrt(np.einsum("ij,ij->i", diff, diff, dtype=np.float64))
 
 
 def guided_search(q: NDArray, uv_predicted: Array, t: NDArray, uv: Array, radius_px: float, ratio: float,
-                  lone_bound: float) -> tuple[IntArray, IntArray, Array]:
+                  lone_bound: float, mutual: bool = False) -> tuple[IntArray, IntArray, Array]:
     """Search by projection: each query descriptor among the keypoints near its prediction.
 
     The candidates of query ``i`` are the keypoints within ``radius_px`` of
@@ -87,6 +91,9 @@ def guided_search(q: NDArray, uv_predicted: Array, t: NDArray, uv: Array, radius
         Keep when ``d1 < ratio * d2`` (best and second-best candidates of the window).
     lone_bound : float
         Keep only when ``d1 < lone_bound`` (the only test of a lone candidate).
+    mutual : bool
+        Also require the query to be the nearest of the keypoint's own candidates (the
+        queries whose windows hold it).
 
     Returns
     -------
@@ -109,7 +116,128 @@ def guided_search(q: NDArray, uv_predicted: Array, t: NDArray, uv: Array, radius
     d1 = d[first]
     d2 = np.where(count > 1, d[np.minimum(first + 1, len(d) - 1)], np.inf)
     ok = (d1 < lone_bound) & (d1 < ratio * d2)  # d2 is inf for a lone candidate
+    if mutual:
+        back = np.lexsort((qi, d, kj))  # by keypoint, then distance (ties: lower query)
+        kp, kfirst = np.unique(kj[back], return_index=True)
+        nearest = np.full(len(t), -1, np.int64)
+        nearest[kp] = qi[back][kfirst]
+        ok &= nearest[kj[first]] == rows
     return rows[ok], kj[first[ok]], d1[ok]
+
+
+@dataclass(frozen=True)
+class ImageMotion:
+    """How a frame's keypoints moved since the frame before, to predict where they are next.
+
+    Attributes
+    ----------
+    flow : (N, 2) float64
+        Image velocity of each keypoint, pixels per frame: its displacement from its match
+        in the frame before (an epipolar inlier); a keypoint without one takes the median
+        of its nearest matched neighbours' (``FLOW_NEIGHBOURS``).
+    radius_px : float
+        Search radius for the next frame, pixels: the ``PREDICTION_QUANTILE`` of this
+        frame's prediction errors (how far its matches landed from where the frame before
+        predicted them), at least ``MIN_RADIUS_PX``; ``inf`` (search the whole next frame)
+        when there was no prediction or that quantile exceeds ``MAX_RADIUS_PX`` (still
+        images, a jolt): a window is searched only once the prediction has been seen to
+        hold. A windowed search sees only the errors inside its window, so the radius
+        shrinks while the prediction holds; when it stops holding, the window finds fewer
+        matches than its ``reference`` and the whole frame is searched again.
+    reference : int
+        Epipolar inliers of the last whole-frame search: a window that finds fewer than a
+        fraction of them has missed and the whole frame is searched again.
+    """
+
+    flow: Array
+    radius_px: float
+    reference: int
+
+
+#: Matched neighbours whose median flow a keypoint without a match takes.
+FLOW_NEIGHBOURS = 5
+#: Quantile of the prediction errors the search window covers, and its bounds (pixels:
+#: the keypoints' localisation noise below, a fast turn's image motion above).
+PREDICTION_QUANTILE = 0.99
+MIN_RADIUS_PX, MAX_RADIUS_PX = 8.0, 64.0
+
+
+def image_motion(uv: Array, uv_previous: Array, rows: IntArray, rows_previous: IntArray,
+                 previous: ImageMotion | None, whole_frame: bool) -> ImageMotion | None:
+    """The :class:`ImageMotion` of a frame from its matches with the frame before.
+
+    Parameters
+    ----------
+    uv : (N, 2) the frame's keypoints, pixels.
+    uv_previous : (N2, 2) the previous frame's keypoints, pixels.
+    rows, rows_previous : (M,) int64 matched rows of the two (epipolar inliers).
+    previous : ImageMotion or None
+        The previous frame's motion (the prediction the matches are compared with).
+    whole_frame : bool
+        Whether the matches come from a search of the whole frame (they then set the
+        reference) or of the previous motion's windows (which keep it).
+
+    Returns
+    -------
+    ImageMotion or None
+        None with fewer than ``FLOW_NEIGHBOURS`` matches (nothing to predict from).
+    """
+    rows, rows_previous = np.asarray(rows, np.int64), np.asarray(rows_previous, np.int64)
+    if len(rows) < FLOW_NEIGHBOURS:
+        return None
+    flow = np.empty((len(uv), 2))
+    step = uv[rows] - uv_previous[rows_previous]
+    flow[rows] = step
+    lone = np.ones(len(uv), bool)
+    lone[rows] = False
+    if lone.any():
+        _, nn = cKDTree(uv[rows]).query(uv[lone], k=FLOW_NEIGHBOURS)
+        flow[lone] = np.median(step[nn], axis=1)
+    radius = np.inf
+    if previous is not None:
+        radius = max(float(np.quantile(np.linalg.norm(step - previous.flow[rows_previous], axis=1),
+                                       PREDICTION_QUANTILE)), MIN_RADIUS_PX)
+    reference = previous.reference if previous is not None and not whole_frame else int(len(rows))
+    return ImageMotion(flow, radius if radius <= MAX_RADIUS_PX else np.inf, reference)
+
+
+def windowed_match(d_new: NDArray, uv_new: Array, d_old: NDArray, uv_old_predicted: Array, radius_px: float,
+                   ratio: float, free_new: NDArray[np.bool_] | None = None,
+                   free_old: NDArray[np.bool_] | None = None) -> tuple[IntArray, IntArray]:
+    """Match a new frame's keypoints to an older frame's near where those are predicted.
+
+    Each free new keypoint is compared only with the free old keypoints predicted within
+    ``radius_px`` of it (:func:`guided_search`: Lowe's ratio test inside the window, and
+    the bound of :func:`lone_candidate_bound` for the nearest); an old keypoint claimed by
+    several new ones goes to the nearest descriptor, and only when that new one is also the
+    nearest of all whose windows hold it (the mutual check).
+
+    Parameters
+    ----------
+    d_new, d_old : (N1, D), (N2, D) descriptors of one kind (float for L2, ``uint8`` binary
+        for Hamming).
+    uv_new : (N1, 2) the new keypoints, pixels.
+    uv_old_predicted : (N2, 2) where the old keypoints are predicted in the new frame.
+    radius_px : float
+    ratio : float
+    free_new, free_old : (N1,), (N2,) bool, optional
+        Only these rows may be matched (default: all).
+
+    Returns
+    -------
+    (idx_new, idx_old) : two (M,) int64 arrays of matched rows, ascending in ``idx_new``,
+        each row used at most once.
+    """
+    rn = np.flatnonzero(np.ones(len(d_new), bool) if free_new is None else free_new)
+    ro = np.flatnonzero(np.ones(len(d_old), bool) if free_old is None else free_old)
+    if len(rn) == 0 or len(ro) == 0:
+        return _EMPTY
+    rows, kp, dist = guided_search(d_new[rn], uv_new[rn], d_old[ro], uv_old_predicted[ro], radius_px, ratio,
+                                   lone_candidate_bound(d_old, ratio), mutual=True)
+    order = np.argsort(dist, kind="stable")
+    _, first = np.unique(kp[order], return_index=True)
+    keep = np.sort(order[first])
+    return rn[rows[keep]], ro[kp[keep]]
 
 
 class DescriptorIndex:

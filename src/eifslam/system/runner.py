@@ -162,10 +162,9 @@ class FramePrefetcher:
     start : int
         The first frame.
     ahead : callable, optional
-        ``ahead(features, more)``: what the consumer would do next with a frame's features
+        ``ahead(features)``: what the consumer would do next with a frame's features
         that depends on the frames before it only, called in frame order from one thread
-        (:meth:`eifslam.frontend.FrontEnd.match_ahead`); ``more`` is True while frames wait
-        in the queue (the consumer is the slower side, so the worker may do more of its work).
+        (:meth:`eifslam.frontend.FrontEnd.match_ahead`).
     workers : int >= 1
         Frames decoded and detected at once.
 
@@ -254,10 +253,9 @@ class FramePrefetcher:
                     self._put((-1, None, error))
                     return
                 if self._ahead is not None and detected:
-                    # frames waiting in the queue: the consumer is the slower side, so the
-                    # worker also makes what the front end's match_ahead hands over (the
-                    # same results wherever it is made)
-                    item = self._ahead(item, self._queue.qsize() > 0)
+                    # what the front end's match_ahead hands over (the same results
+                    # wherever it is made)
+                    item = self._ahead(item)
                 starved = self._queue.qsize() == 0
                 if not self._put((k, item, None)):
                     return
