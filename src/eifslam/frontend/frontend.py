@@ -532,8 +532,7 @@ class FrontEnd:
         """Matches of the new frame's unassigned keypoints with an older frame ``p``'s
         keypoints whose track is not continued, under the epipolar RANSAC, searched in the
         whole frame (its index and the new frame's): a window, along the new frame's motion
-        two or three frames back, lost accuracy (middlebury-templering 0.0018 m in smooth
-        mode on three seeds, against 0.0012-0.0023 m)."""
+        two or three frames back, lost accuracy on the shared sets (docs/frontend.md)."""
         free_new = ids < 0
         free_old = ~np.isin(pid, ids[ids >= 0])
         if free_new.sum() < 5 or free_old.sum() < 5:
