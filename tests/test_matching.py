@@ -197,7 +197,8 @@ def _moving_keypoints(rng, n=400, flow=(14.0, -6.0)):
     src = rng.permutation(n)[:300]
     d_new = np.concatenate([d_old[src] + rng.normal(0, 0.02, (300, d_old.shape[1])).astype(np.float32),
                             rng.random((100, d_old.shape[1])).astype(np.float32)])
-    uv_new = np.concatenate([uv_old[src] + flow + rng.normal(0, 1.0, (300, 2)), rng.uniform([0, 0], [640, 480], (100, 2))])
+    uv_new = np.concatenate([uv_old[src] + flow + rng.normal(0, 1.0, (300, 2)),
+                             rng.uniform([0, 0], [640, 480], (100, 2))])
     truth = np.concatenate([src, np.full(100, -1)])
 
     def sift_norm(d):

@@ -287,10 +287,11 @@ class FrontEnd:
         """What :meth:`add_features` would do first with the features of a new frame
         (:meth:`detect`'s) that depends on them and the frame before them alone, so that a
         prefetch worker can make it: the new frame's search index (``Features.index``,
-        FLANN for float descriptors, seeded from the descriptors themselves), and the first match :meth:`add_features` makes, with the previous
-        frame, every row free, predicted by that frame's motion, with its epipolar RANSAC
-        (``Features.ahead``; OpenCV's estimators draw from their own fixed seed) and the
-        new frame's motion (``Features.motion``). :meth:`add_features` makes what was not
+        FLANN for float descriptors, seeded from the descriptors themselves), and the first
+        match :meth:`add_features` makes, with the previous frame, every row free,
+        predicted by that frame's motion, with its epipolar RANSAC (``Features.ahead``;
+        OpenCV's estimators draw from their own fixed seed) and the new frame's motion
+        (``Features.motion``). :meth:`add_features` makes what was not
         made ahead itself and uses the matches only when its previous frame holds those
         descriptors and that motion, so the results are those of :meth:`detect` alone
         either way. One thread calls it, in frame order."""
@@ -447,7 +448,8 @@ class FrontEnd:
         """
         ahead, index, motion_p = detected.ahead, self._index[p], self._motion.get(p)
         if ahead is not None and ahead.previous is index.descriptors and ahead.motion_previous is motion_p:
-            i_new, i_prev, inliers, motion, ms = ahead.idx_new, ahead.idx_previous, ahead.inliers, detected.motion, ahead.ms
+            i_new, i_prev, inliers, ms = ahead.idx_new, ahead.idx_previous, ahead.inliers, ahead.ms
+            motion = detected.motion
         else:  # not made ahead, or against another frame or motion (a frame skipped, a session loaded)
             previous = replace(self._frames[p].feats, descriptors=index.descriptors)
             (i_new, i_prev, inliers, motion), ms = self._first_match(feats, previous, index, motion_p), None

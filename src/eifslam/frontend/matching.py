@@ -63,7 +63,8 @@ def row_distances(a: NDArray, b: NDArray) -> Array:
     if a.dtype == np.uint8:
         x = np.bitwise_xor(a, b)
         if hasattr(np, "bitwise_count") and x.shape[1] % 8 == 0:  # NumPy >= 2: eight bytes at a time
-            return np.bitwise_count(np.ascontiguousarray(x).view(np.uint64)).sum(axis=1, dtype=np.int64).astype(np.float64)
+            bits = np.bitwise_count(np.ascontiguousarray(x).view(np.uint64))
+            return bits.sum(axis=1, dtype=np.int64).astype(np.float64)
         return _POPCOUNT[x].sum(axis=1, dtype=np.int64).astype(np.float64)
     diff = np.asarray(a, np.float32) - np.asarray(b, np.float32)
     return np.sqrt(np.einsum("ij,ij->i", diff, diff, dtype=np.float64))
