@@ -407,3 +407,25 @@ def test_matches_made_ahead_give_the_front_ends_own_results(scene_frames, detect
                                     cfg.ransac_threshold_px, cfg.ransac_confidence, cfg.ransac_method)
         np.testing.assert_array_equal(again, inl)
     assert all((f.index is not None) == cfg.flann_search for f in ahead)
+
+
+def test_a_loaded_front_end_goes_on_as_the_uninterrupted_one(scene_frames):
+    """A front end saved after six frames and loaded again searches the next frames where
+    the saved motion predicts them, with the matches made ahead from the first frame on,
+    and gives the tracks of the uninterrupted one."""
+    cam, ims = scene_frames.camera, scene_frames.images
+    cfg = FrontEndConfig(seed=0)
+    a = FrontEnd(cam, cfg)
+    res_a = [a.add_features(a.match_ahead(a.detect(im)), k) for k, im in enumerate(ims)]
+    b = FrontEnd(cam, cfg)
+    for k, im in enumerate(ims[:6]):
+        b.add_features(b.match_ahead(b.detect(im)), k)
+    c = FrontEnd(cam, cfg)
+    c.load_state_dict(b.state_dict())
+    ahead = [c.match_ahead(c.detect(im)) for im in ims[6:]]
+    assert all(f.ahead is not None and f.ahead.motion_previous is not None for f in ahead)
+    res_c = [c.add_features(f, k) for k, f in enumerate(ahead, start=6)]
+    assert all("match_ahead" in r.timings_ms for r in res_c)
+    assert [r.n_matches for r in res_c] == [r.n_matches for r in res_a[6:]]
+    for k in range(6, len(ims)):
+        np.testing.assert_array_equal(a.frame(k).track_ids, c.frame(k).track_ids)
