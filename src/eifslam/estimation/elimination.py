@@ -137,7 +137,7 @@ class FeatureElimination:
         factor, P, b : as :func:`~eifslam.estimation.recovery.factorize_onto`.
         """
         if not (len(mf) and len(pa)):
-            return factorize_onto(I.tocsr() if isinstance(I, SummedRows) else I, mp, mf, pa, i)
+            return factorize_onto(I.tocsr(), mp, mf, pa, i)  # a CSR matrix is its own tocsr()
         self.update(I, i, np.unique(block_start[mf]), pose_entries)
         pos = np.full(len(block_start), -1, np.int64)
         pos[pose_entries] = np.arange(len(pose_entries))

@@ -209,9 +209,9 @@ def windowed_match(d_new: NDArray, uv_new: Array, d_old: NDArray, uv_old_predict
 
     Each free new keypoint is compared only with the free old keypoints predicted within
     ``radius_px`` of it (:func:`guided_search`: Lowe's ratio test inside the window, and
-    the bound of :func:`lone_candidate_bound` for the nearest); an old keypoint claimed by
-    several new ones goes to the nearest descriptor, and only when that new one is also the
-    nearest of all whose windows hold it (the mutual check).
+    the bound of :func:`lone_candidate_bound` for the nearest) and must be the nearest of
+    all new keypoints whose windows hold the old one (the mutual check, which also leaves
+    each old keypoint to one new one).
 
     Parameters
     ----------
@@ -233,12 +233,9 @@ def windowed_match(d_new: NDArray, uv_new: Array, d_old: NDArray, uv_old_predict
     ro = np.flatnonzero(np.ones(len(d_old), bool) if free_old is None else free_old)
     if len(rn) == 0 or len(ro) == 0:
         return _EMPTY
-    rows, kp, dist = guided_search(d_new[rn], uv_new[rn], d_old[ro], uv_old_predicted[ro], radius_px, ratio,
-                                   lone_candidate_bound(d_old, ratio), mutual=True)
-    order = np.argsort(dist, kind="stable")
-    _, first = np.unique(kp[order], return_index=True)
-    keep = np.sort(order[first])
-    return rn[rows[keep]], ro[kp[keep]]
+    rows, kp, _ = guided_search(d_new[rn], uv_new[rn], d_old[ro], uv_old_predicted[ro], radius_px, ratio,
+                                lone_candidate_bound(d_old, ratio), mutual=True)
+    return rn[rows], ro[kp]  # the mutual check leaves each old keypoint to one new one
 
 
 class DescriptorIndex:

@@ -144,9 +144,9 @@ class FramePrefetcher:
     hands them to the consumer through a queue holding at most ``depth`` frames. While the
     consumer waits (the queue is empty: detection is the slower side), up to ``workers``
     frames are detected at once, so that on a sequence whose detection is slower than the
-    rest of a frame's work both cores detect; while frames wait in the queue, one. The threads stop at the next frame (or within 0.1 s
-    when blocked on a full queue) once :meth:`close` is called, so an interrupted run never
-    hangs on them.
+    rest of a frame's work both cores detect; while frames wait in the queue, one. The
+    threads stop at the next frame (or within 0.1 s when blocked on a full queue) once
+    :meth:`close` is called, so an interrupted run never hangs on them.
 
     Parameters
     ----------
@@ -181,7 +181,7 @@ class FramePrefetcher:
     _DONE = object()
 
     def __init__(self, seq, n: int, detect: Callable[[Any], Any], depth: int = 2, start: int = 0,
-                 ahead: Callable[[Any, bool], Any] | None = None, workers: int = 1) -> None:
+                 ahead: Callable[[Any], Any] | None = None, workers: int = 1) -> None:
         self._seq, self._n, self._detect, self._start = seq, int(n), detect, int(start)
         self._ahead = ahead
         self._queue: queue.Queue = queue.Queue(maxsize=max(1, int(depth)))
