@@ -1,7 +1,9 @@
-"""Descriptor matching: a frame's index built once and reused gives the matches
-the plain matcher gives; rows that are not free are never matched; binary descriptors are
-searched exactly; a seeded index is the same whenever it is built; the guided search finds
-a descriptor near its prediction only, with the ratio test inside its window."""
+"""Descriptor matching: float descriptors are matched exactly (the brute-force ratio test
+and cross check) and, above ``EXACT_ROWS``, by FLANN; a frame's index built once and reused
+gives the matches the plain matcher gives; rows that are not free are never matched; binary
+descriptors are searched exactly; a seeded index is the same whenever it is built; the
+guided search finds a descriptor near its prediction only, with the ratio test inside its
+window."""
 
 from __future__ import annotations
 
@@ -9,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from eifslam.frontend import matching
 from eifslam.frontend.matching import (MAX_RADIUS_PX, MIN_RADIUS_PX, DescriptorIndex, DescriptorMatcher,
                                       ImageMotion, guided_search, image_motion, lone_candidate_bound, row_distances,
                                       windowed_match)
@@ -36,12 +39,20 @@ def _pair(rng, n=600, shared=400, dim=128, noise=0.05, binary=False):
     return d1, d2, truth
 
 
+@pytest.fixture(params=["exact", "flann"])
+def search(request, monkeypatch):
+    """Both searches of float descriptors: exact, and FLANN (``EXACT_ROWS`` 0)."""
+    if request.param == "flann":
+        monkeypatch.setattr(matching, "EXACT_ROWS", 0)
+    return request.param
+
+
 def _recall(i1, i2, truth):
     return np.mean(truth[i1] == i2) if len(i1) else 0.0, np.sum(truth[i1] == i2) / np.sum(truth >= 0)
 
 
 @pytest.mark.parametrize("binary", [False, True])
-def test_prebuilt_indices_give_the_plain_matches(binary):
+def test_prebuilt_indices_give_the_plain_matches(binary, search):
     rng = np.random.default_rng(4)
     d1, d2, truth = _pair(rng, binary=binary)
     m = DescriptorMatcher(0.8, True)
@@ -56,7 +67,7 @@ def test_prebuilt_indices_give_the_plain_matches(binary):
 
 
 @pytest.mark.parametrize("with_index", [False, True])
-def test_rows_that_are_not_free_are_never_matched(with_index):
+def test_rows_that_are_not_free_are_never_matched(with_index, search):
     rng = np.random.default_rng(5)
     d1, d2, truth = _pair(rng)
     free1 = rng.random(len(d1)) < 0.6
@@ -72,21 +83,50 @@ def test_rows_that_are_not_free_are_never_matched(with_index):
     assert np.mean(truth[i1] == i2) >= 0.97
 
 
-def test_free_rows_from_a_full_index_are_the_subset_matches():
-    """The nearest free rows taken from a search of all rows (prebuilt indices) give the
-    matches of a search of the free rows alone, also where the taken rows are the nearer
-    ones (here every taken row of d2 has a near copy in d1)."""
+def test_free_rows_from_a_full_index_are_the_subset_matches(monkeypatch):
+    """The nearest free rows taken from a FLANN search of all rows (prebuilt indices) give
+    the matches of a search of the free rows alone, and the exact matches, also where the
+    taken rows are the nearer ones (here every taken row of d2 has a near copy in d1)."""
     rng = np.random.default_rng(8)
     d1, d2, truth = _pair(rng, n=800, shared=600, noise=0.08)
     taken2 = np.zeros(len(d2), bool)
     taken2[truth[truth >= 0][:300]] = True  # half of the true partners are taken already
     free1 = rng.random(len(d1)) < 0.8  # rows of d1 whose partner is taken stay free: their nearest is taken
     m = DescriptorMatcher(0.8, True)
+    exact = set(zip(*m.match(d1, d2, free1, ~taken2)))
+    monkeypatch.setattr(matching, "EXACT_ROWS", 0)
     a = m.match(d1, d2, free1, ~taken2)
     b = m.match(d1, d2, free1, ~taken2, m.index(d1), m.index(d2))
     pa, pb = set(zip(*a)), set(zip(*b))
     assert len(pa) > 200
     assert 0.95 <= len(pa & pb) / len(pa | pb) <= 1.0
+    assert 0.95 <= len(pb & exact) / len(pb | exact) <= 1.0
+
+
+@pytest.mark.parametrize("mutual", [False, True])
+def test_exact_matches_are_the_brute_force_ratio_test_and_cross_check(mutual):
+    """The exact search of float descriptors gives what OpenCV's brute-force matcher gives
+    on the free rows: Lowe's ratio test on the two nearest and, with ``mutual``, the
+    nearest of the other side's row."""
+    rng = np.random.default_rng(9)
+    d1, d2, _ = _pair(rng, n=700, shared=450, noise=0.1)
+    free1, free2 = rng.random(len(d1)) < 0.7, rng.random(len(d2)) < 0.8
+    r1, r2 = np.flatnonzero(free1), np.flatnonzero(free2)
+    bf = cv2.BFMatcher(cv2.NORM_L2)
+    fwd = bf.knnMatch(d1[r1], d2[r2], k=2)
+    back = [m[0].trainIdx for m in bf.knnMatch(d2[r2], d1[r1], k=1)]
+    ref = set()
+    for i, (a, b) in enumerate(fwd):
+        if a.distance < 0.8 * b.distance and (not mutual or back[a.trainIdx] == i):
+            ref.add((int(r1[i]), int(r2[a.trainIdx])))
+    if not mutual:  # a row of d2 claimed by several rows of d1 goes to the first of them
+        first = {}
+        for i, j in sorted(ref):
+            first.setdefault(j, i)
+        ref = {(i, j) for j, i in first.items()}
+    got = DescriptorMatcher(0.8, mutual).match(d1, d2, free1, free2)
+    assert len(ref) > 250
+    assert set(zip(*got)) == ref
 
 
 def test_binary_search_is_the_brute_force_matcher():
@@ -102,7 +142,8 @@ def test_binary_search_is_the_brute_force_matcher():
     assert (few[:, 1] == -1).all() and np.isinf(fd[:, 1]).all() and (few[:, 0] == 0).all()
 
 
-def test_a_seeded_index_is_the_same_whenever_it_is_built():
+def test_a_seeded_index_is_the_same_whenever_it_is_built(monkeypatch):
+    monkeypatch.setattr(matching, "EXACT_ROWS", 0)
     rng = np.random.default_rng(7)
     d1, d2, _ = _pair(rng, n=2000, shared=1000, noise=0.3)
     out = []

@@ -386,7 +386,7 @@ def test_matches_made_ahead_give_the_front_ends_own_results(scene_frames, detect
     b = FrontEnd(cam, cfg)
     ahead = [b.match_ahead(b.detect(im)) for im in ims]
     assert ahead[0].ahead is None and all(f.ahead is not None and len(f.ahead.idx_new) > 20 for f in ahead[1:])
-    predicted = cfg.flann_search  # binary descriptors are searched in the whole frame
+    predicted = cfg.detector.float_descriptors  # binary descriptors are searched in the whole frame
     assert all((f.motion is not None) == predicted and f.ahead.motion_previous is p.motion
                for f, p in zip(ahead[2:], ahead[1:]))
     res_b = [b.add_features(f, k) for k, f in enumerate(ahead) if k != 3]  # frame 4's were made against 3
@@ -406,7 +406,7 @@ def test_matches_made_ahead_give_the_front_ends_own_results(scene_frames, detect
         _, again = essential_ransac(prev.uv[f.ahead.idx_previous], f.uv[f.ahead.idx_new], cam.K,
                                     cfg.ransac_threshold_px, cfg.ransac_confidence, cfg.ransac_method)
         np.testing.assert_array_equal(again, inl)
-    assert all((f.index is not None) == cfg.flann_search for f in ahead)
+    assert all((f.index is not None) == cfg.detector.float_descriptors for f in ahead)
 
 
 def test_a_loaded_front_end_goes_on_as_the_uninterrupted_one(scene_frames):

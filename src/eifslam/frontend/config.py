@@ -66,11 +66,10 @@ class FrontEndConfig:
     ratio: ClassVar[float] = 0.8
     #: Keep only mutual nearest neighbours (fewer wrong matches for little cost).
     mutual: ClassVar[bool] = True
-    #: Randomised k-d trees of the FLANN index of float descriptors.
+    #: Randomised k-d trees of the FLANN index of float descriptors (the sets too large
+    #: for an exact match, ``frontend.matching.EXACT_ROWS``).
     flann_trees: ClassVar[int] = 4
     #: Leaves FLANN visits per query: close to exact neighbours at a fraction of the cost.
-    #: Half as many makes kitti-07 run at 10.9 instead of 9.6 fps but loses accuracy on
-    #: icl-nuim-lr-kt3 and middlebury-templering (docs/frontend.md).
     flann_checks: ClassVar[int] = 48
     #: Epipolar (Sampson) inlier threshold of the essential-matrix RANSAC, pixels: about
     #: the keypoint noise.
@@ -96,13 +95,6 @@ class FrontEndConfig:
 
     def __post_init__(self) -> None:
         check_section(self, "frontend")
-
-    @property
-    def flann_search(self) -> bool:
-        """Whether frames are matched with a FLANN index (approximate, built with OpenCV's
-        seeded generator, serial): float descriptors; binary descriptors are searched
-        exactly by brute force."""
-        return self.detector.float_descriptors
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> "FrontEndConfig":

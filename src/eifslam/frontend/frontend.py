@@ -163,12 +163,12 @@ class FrontEnd:
 
     def _searchable(self, d: NDArray) -> NDArray:
         """Stored descriptors ``d`` as the detector gives them: SIFT's bytes as ``float32``."""
-        return d.astype(np.float32) if self.config.flann_search and d.dtype == np.uint8 else d
+        return d.astype(np.float32) if self.config.detector.float_descriptors and d.dtype == np.uint8 else d
 
     def _compact(self, d: NDArray) -> NDArray:
         """Descriptors as stored: OpenCV's SIFT descriptors are floats holding the integers
         0..255, kept as bytes (a quarter of the memory, exactly); others as they are."""
-        if d.dtype != np.float32 or not self.config.flann_search:
+        if d.dtype != np.float32 or not self.config.detector.float_descriptors:
             return d
         b = d.astype(np.uint8)
         return b if np.array_equal(b, d) else d
@@ -287,7 +287,8 @@ class FrontEnd:
         """What :meth:`add_features` would do first with the features of a new frame
         (:meth:`detect`'s) that depends on them and the frame before them alone, so that a
         prefetch worker can make it: the new frame's search index (``Features.index``,
-        FLANN for float descriptors, seeded from the descriptors themselves), and the first
+        for float descriptors; a FLANN forest above ``EXACT_ROWS`` keypoints, seeded from the
+        descriptors themselves), and the first
         match :meth:`add_features` makes, with the previous frame, every row free,
         predicted by that frame's motion, with its epipolar RANSAC (``Features.ahead``;
         OpenCV's estimators draw from their own fixed seed) and the new frame's motion
@@ -297,9 +298,9 @@ class FrontEnd:
         either way. One thread calls it, in frame order."""
         previous = self._ahead_last
         index = None
-        if self.config.flann_search:  # built here: the searches of the older frames need it
+        if self.config.detector.float_descriptors:  # made here, once: the matches of the next frames search it
             index = self._seeded_index(feats.descriptors)
-            index.build()
+            index.build()  # (a FLANN forest only above EXACT_ROWS keypoints)
         feats = replace(feats, index=index)
         if previous is not None:
             t0 = time.perf_counter()
@@ -501,7 +502,7 @@ class FrontEnd:
                                                 index1=feats.index, index2=previous_index)
             inliers = self._inliers_of(feats.uv[i_new], previous.uv[i_prev])
         motion = None
-        if inliers is not None and inliers.sum() >= c.min_matches and c.flann_search:
+        if inliers is not None and inliers.sum() >= c.min_matches and c.detector.float_descriptors:
             motion = image_motion(feats.uv, previous.uv, i_new[inliers], i_prev[inliers], previous_motion,
                                   whole_frame=not predicted)
         return i_new, i_prev, inliers, motion
@@ -705,7 +706,7 @@ class FrontEnd:
         D = cat(lambda f: f.feats.descriptors, (width,), dtype)
         # OpenCV's SIFT descriptors are floats holding integers 0..255: kept as bytes (4x
         # smaller), exactly
-        as_bytes = self.config.flann_search and (D.dtype == np.uint8 or bool(
+        as_bytes = self.config.detector.float_descriptors and (D.dtype == np.uint8 or bool(
             np.all((D >= 0) & (D <= 255) & (D == np.round(D)))))
         return {
             "descriptors_float32": as_bytes,

@@ -24,6 +24,14 @@ __all__ = ["DescriptorIndex", "DescriptorMatcher", "ImageMotion", "essential_ran
 
 #: Neighbours searched in a prebuilt index of all rows to find the nearest free ones.
 FREE_SEARCH = 8
+#: Float descriptors are matched exactly, from the matrix of all their distances (one BLAS
+#: product), while the two sides have at most this many rows each (pairs: its square); a
+#: FLANN k-d forest is built and searched only above it. ``benchmarks/matching.py`` (SIFT
+#: on the shared sets, one thread): with every keypoint of two frames free (up to
+#: 2000 x 2000) the exact match costs what FLANN's two searches of prebuilt indices cost,
+#: with half of them free (the older frames' search) a third to a half of it; the matrix
+#: of 2500 x 2500 distances takes 25 MB.
+EXACT_ROWS = 2500
 
 _EMPTY = (np.zeros(0, np.int64), np.zeros(0, np.int64))
 
@@ -243,8 +251,10 @@ class DescriptorIndex:
 
     Float descriptors (SIFT) get a FLANN k-d forest, built once (:meth:`build`, or
     on the first query) and kept, so a frame's index serves every query against it (as the
-    train set of the next frames' matches and in the mutual checks). Binary descriptors
-    (ORB, AKAZE) are searched exactly by brute force (Hamming), which has nothing to build.
+    train set of the next frames' matches and in the mutual checks); :meth:`DescriptorMatcher.match`
+    uses it only for more than ``EXACT_ROWS`` rows and matches fewer exactly. Binary
+    descriptors (ORB, AKAZE) are searched exactly by brute force (Hamming), which has
+    nothing to build.
 
     With a ``seed``, the forest's random trees are drawn from OpenCV's generator set to
     ``seed`` plus a checksum of the descriptors: the same descriptors give the same index,
@@ -271,18 +281,23 @@ class DescriptorIndex:
 
     @property
     def prebuilt(self) -> bool:
-        """Whether the index has a structure worth keeping (FLANN), rather than a brute-force search."""
-        return not self.binary
+        """Whether the index has a structure worth keeping (FLANN: float descriptors, more
+        than ``EXACT_ROWS`` of them), rather than an exact search."""
+        return not self.binary and len(self.descriptors) > EXACT_ROWS
 
     def __len__(self) -> int:
         return len(self.descriptors)
 
     def build(self) -> None:
-        """Build the FLANN index now (else on the first query; nothing for binary descriptors).
-        Its random trees are drawn from OpenCV's generator (``cv2.setRNGSeed``; seeded
-        from the descriptors when the index has a ``seed``)."""
+        """Build the FLANN index now when it is worth keeping (:attr:`prebuilt`; else a
+        FLANN query builds it first). Its random trees are drawn from OpenCV's generator
+        (``cv2.setRNGSeed``; seeded from the descriptors when the index has a ``seed``)."""
+        if self.prebuilt:
+            self._build()
+
+    def _build(self) -> None:
         with self._lock:
-            if self._flann is None and self.prebuilt and len(self.descriptors):
+            if self._flann is None and not self.binary and len(self.descriptors):
                 if self._seed is not None:
                     cv2.setRNGSeed((self._seed + zlib.crc32(self.descriptors)) % 2**31)
                 self._flann = cv2.flann_Index(self.descriptors, {"algorithm": 1, "trees": self._trees})
@@ -312,7 +327,7 @@ class DescriptorIndex:
                                      normType=cv2.NORM_HAMMING, K=kk)
             d = d.astype(np.float64)
         else:
-            self.build()
+            self._build()
             with self._lock:
                 i, d = self._flann.knnSearch(np.ascontiguousarray(q, np.float32), kk, params={"checks": self._checks})
             d = np.sqrt(np.maximum(d.astype(np.float64), 0.0))  # FLANN returns squared L2
@@ -373,10 +388,13 @@ class DescriptorMatcher:
         free1, free2 : (N1,), (N2,) bool, optional
             Only these rows may be matched (default: all).
         index1, index2 : DescriptorIndex, optional
-            Prebuilt indices of all of ``d1`` / ``d2``. When given, the nearest free rows
-            are taken from a search of all rows (``_search``); without one the search runs
-            on the free rows only: the same matches up to FLANN's approximation. Brute-force indices of binary descriptors are not used (a search of the
-            free rows costs less than one of all).
+            Prebuilt indices of all of ``d1`` / ``d2``, used by the FLANN search of float
+            descriptors (more free rows than ``EXACT_ROWS`` squared pairs): the nearest
+            free rows are taken from a search of all rows (``_search``); without one the
+            search runs on the free rows only, the same matches up to FLANN's
+            approximation. Fewer pairs of float descriptors are matched exactly
+            (:meth:`_exact`), and binary ones by brute force on the free rows (a search of
+            the free rows costs less than one of all); neither uses the indices.
 
         Returns
         -------
@@ -387,6 +405,8 @@ class DescriptorMatcher:
         if f1.sum() < 2 or f2.sum() < 2:
             return _EMPTY
         rows1 = np.flatnonzero(f1)
+        if d1.dtype != np.uint8 and len(rows1) * int(f2.sum()) <= EXACT_ROWS ** 2:
+            return self._exact(d1[rows1], d2[f2], rows1, np.flatnonzero(f2))
         nn, dd = self._search(d1[rows1], d2, f2, index2, 2)
         ok = (nn[:, 0] >= 0) & np.isfinite(dd[:, 1]) & (dd[:, 0] < self.ratio * dd[:, 1])
         i1, i2 = rows1[ok], nn[ok, 0]
@@ -403,6 +423,28 @@ class DescriptorMatcher:
         _, first = np.unique(i2, return_index=True)
         first = np.sort(first)
         return i1[first], i2[first]
+
+    def _exact(self, a: NDArray, b: NDArray, rows_a: IntArray, rows_b: IntArray) -> tuple[IntArray, IntArray]:
+        """:meth:`match` of float descriptors ``a (N1, D)`` and ``b (N2, D)`` (N1, N2 >= 2)
+        from the matrix of their squared L2 distances: each row's two nearest columns for
+        the ratio test and each column's nearest row for the mutual check. Returns the
+        matches as rows of ``rows_a`` and ``rows_b``."""
+        a, b = np.asarray(a, np.float32), np.asarray(b, np.float32)
+        D = np.einsum("ij,ij->i", a, a)[:, None] + np.einsum("ij,ij->i", b, b)[None, :]
+        D -= 2.0 * (a @ b.T)
+        two = np.argpartition(D, 1, axis=1)[:, :2]  # the two nearest, in either order
+        d = np.take_along_axis(D, two, axis=1)
+        swap = d[:, 1] < d[:, 0]
+        nearest = np.where(swap, two[:, 1], two[:, 0])
+        d1, d2 = np.where(swap, d[:, 1], d[:, 0]), np.maximum(np.where(swap, d[:, 0], d[:, 1]), 0.0)
+        i1 = np.flatnonzero(d1 < self.ratio ** 2 * d2)  # squared distances: the ratio squared
+        i2 = nearest[i1]
+        if self.mutual:
+            keep = np.argmin(D[:, i2], axis=0) == i1 if len(i1) else np.zeros(0, bool)
+            i1, i2 = i1[keep], i2[keep]
+        _, first = np.unique(i2, return_index=True)  # a column claimed once (without the mutual check)
+        first = np.sort(first)
+        return rows_a[i1[first]], rows_b[i2[first]]
 
     def _search(self, q: NDArray, t: NDArray, free: NDArray[np.bool_], index: DescriptorIndex | None,
                 k: int) -> tuple[IntArray, Array]:

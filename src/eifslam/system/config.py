@@ -159,7 +159,7 @@ class RuntimeConfig:
     blas_threads: int | None = setting(1, "threads of the BLAS library during a run (null: the library's "
                                           "setting); more only spin on the worker's core", Int(1, none=True))
     opencv_threads: int | str | None = setting("auto", "OpenCV's threads during a run: a number, auto (1 when "
-                                                       "detection runs in the worker and matching is FLANN's) or "
+                                                       "detection runs in the worker and descriptors are floats) or "
                                                        "null (OpenCV's setting)", _threads)
 
     def __post_init__(self) -> None:

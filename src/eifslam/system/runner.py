@@ -383,12 +383,13 @@ def _run(seq, config: SlamConfig, max_frames: int | None, scale: tuple | None, q
 def opencv_thread_count(config: SlamConfig, prefetch: int) -> int | None:
     """OpenCV's worker threads for a run (``runtime.opencv_threads`` with ``"auto"``
     resolved: 1 when detection runs in a prefetch worker, ``prefetch > 0``, and the
-    tracking thread searches descriptors with FLANN, which is serial; else None, OpenCV's
-    own setting)."""
+    tracking thread matches float descriptors (SIFT: one BLAS product, on one thread, or
+    FLANN, which is serial), which leaves OpenCV no work to share; else None, OpenCV's
+    own setting: binary descriptors are compared by OpenCV's parallel brute force)."""
     v = config.runtime.opencv_threads
     if v != "auto":
         return v
-    return 1 if prefetch > 0 and config.frontend.flann_search else None
+    return 1 if prefetch > 0 and config.float_descriptors else None
 
 
 def detect_workers(prefetch: int) -> int:
