@@ -267,24 +267,30 @@ class Keyframes:
         the relative pose it had when tracked (:meth:`composed`; its old absolute pose is
         in the old map's gauge, and a re-localisation from it can converge to a wrong
         minimum: on kitti-07 one such frame landed 10 m off with 70% of its features
-        fitting) and is re-localised on the map observations it was localised on. When
-        its features left the map, or the re-localisation does not converge or fits under
-        ``TrackingConfig.map_inlier_fraction`` of them, it keeps the composed pose. Returns the
-        poses."""
+        fitting) and is re-localised on every map feature it observes in the final map:
+        those it was localised on and those later keyframes triangulated from its tracks
+        (on icl-nuim-lr-kt3, where a frame was localised on about 50, the error of the
+        frames between keyframes falls from 0.0100 to 0.0066 m, smooth ATE 0.0061
+        against 0.0082 m). When
+        too few of them are in the map, or the re-localisation does not converge or fits
+        under ``TrackingConfig.map_inlier_fraction`` of them, it keeps the composed pose.
+        Returns the poses."""
         filt, cfg = self.filter, self.config
         for k, mp in self._poses.items():
             p0, q0 = self.composed(mp)
             mp.p, mp.q = p0, q0
-            known = filt.layout.has_features(mp.track_ids)
+            tids, uv = self.frontend.map_observations(k)
+            known = filt.layout.has_features(tids)
             if known.sum() < cfg.tracking.min_map_features:
                 continue
-            X = filt.x[filt.layout.feature_columns(mp.track_ids[known])]
-            sol = localise_pose(self.camera, p0, q0, X, mp.uv[known], min_inliers=cfg.tracking.min_map_features,
+            tids, uv = np.asarray(tids, np.int64)[known], uv[known]
+            X = filt.x[filt.layout.feature_columns(tids)]
+            sol = localise_pose(self.camera, p0, q0, X, uv, min_inliers=cfg.tracking.min_map_features,
                                 inlier_px=cfg.tracking.inlier_radius_px)
             if sol is None or sol[2].mean() < cfg.tracking.map_inlier_fraction:
                 continue
             cov = map_pose_covariance(self.camera, sol[0], sol[1], X[sol[2]], self.config.zm_sigma_px,
-                                      self._map_uncertainty(mp.track_ids[known][sol[2]]))
+                                      self._map_uncertainty(tids[sol[2]]))
             if cov is not None:
                 mp.p, mp.q, mp.covariance = sol[0], sol[1], cov
         return [self._poses[k] for k in sorted(self._poses)]
