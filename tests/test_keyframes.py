@@ -184,6 +184,47 @@ def test_frames_between_keyframes_follow_their_keyframe_when_the_map_moves():
         assert np.linalg.norm(p_new - p_old) > 5.0
 
 
+def test_frames_between_keyframes_are_refined_on_every_map_feature_they_observe():
+    """At the end a frame between keyframes is re-localised on all its observations of the
+    final map's features, including those that later keyframes triangulated from its
+    tracks, not only those it was localised on while tracked: its covariance is the one
+    of all of them, and its pose is nearer the truth than one from the first ones alone."""
+    from eifslam.estimation.localisation import localise_pose
+
+    sc, slam = run(keyframes=True, frames=30)
+    filt, cfg = slam.filter, slam.config
+    grown = []
+    for r in slam.results:
+        mp = slam.keyframes.get(r.frame_id)
+        if mp is None:
+            continue
+        ids, _ = slam.frontend.map_observations(r.frame_id)
+        known = np.asarray(ids)[filt.layout.has_features(ids)]
+        first = mp.track_ids[filt.layout.has_features(mp.track_ids)]
+        assert set(first) <= set(known)
+        if len(known) > 1.2 * len(first):
+            grown.append((r.frame_id, mp, first))
+    assert grown  # later keyframes added map features that these frames observe
+    t, P, _ = slam.trajectory()
+    sim = align_sim3(P, sc.positions[: len(P)])
+    errs_all, errs_first = [], []
+    for j, mp, first in grown:
+        c_all = np.trace(slam.results[j].covariance[:3, :3])
+        uv = {t: u for t, u in zip(*slam.frontend.map_observations(j))}
+        X = filt.x[filt.layout.feature_columns(first)]
+        p0, q0 = slam.keyframes.composed(mp)
+        sol = localise_pose(sc.camera, p0, q0, X, np.array([uv[t] for t in first]),
+                            min_inliers=cfg.tracking.min_map_features, inlier_px=cfg.tracking.inlier_radius_px)
+        assert sol is not None
+        ids = first[sol[2]]
+        c_first = np.trace(map_pose_covariance(sc.camera, sol[0], sol[1], X[sol[2]], cfg.zm_sigma_px,
+                                               lambda G: filt.feature_propagate(ids, G))[:3, :3])
+        assert c_all < c_first
+        errs_all.append(np.linalg.norm(sim.apply(slam.results[j].position[None])[0] - sc.positions[j]))
+        errs_first.append(np.linalg.norm(sim.apply(sol[0][None])[0] - sc.positions[j]))
+    assert np.median(errs_all) < np.median(errs_first)
+
+
 def test_smoothing_a_finished_filter_run_moves_the_frames_between_keyframes_too():
     """``Slam.smooth()`` called on a run finished in filter mode gives every frame the
     trajectory a smooth-mode run gives: the frames between keyframes are re-localised on
