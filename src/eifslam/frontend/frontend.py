@@ -287,15 +287,14 @@ class FrontEnd:
         """What :meth:`add_features` would do first with the features of a new frame
         (:meth:`detect`'s) that depends on them and the frame before them alone, so that a
         prefetch worker can make it: the new frame's search index (``Features.index``,
-        for float descriptors; a FLANN forest above ``EXACT_ROWS`` keypoints, seeded from the
-        descriptors themselves), and the first
-        match :meth:`add_features` makes, with the previous frame, every row free,
-        predicted by that frame's motion, with its epipolar RANSAC (``Features.ahead``;
-        OpenCV's estimators draw from their own fixed seed) and the new frame's motion
-        (``Features.motion``). :meth:`add_features` makes what was not
-        made ahead itself and uses the matches only when its previous frame holds those
-        descriptors and that motion, so the results are those of :meth:`detect` alone
-        either way. One thread calls it, in frame order."""
+        for float descriptors; a FLANN forest above ``EXACT_ROWS`` keypoints, seeded from
+        the descriptors themselves), and the first match :meth:`add_features` makes, with
+        the previous frame, every row free, predicted by that frame's motion, with its
+        epipolar RANSAC (``Features.ahead``; OpenCV's estimators draw from their own fixed
+        seed) and the new frame's motion (``Features.motion``). :meth:`add_features` makes
+        what was not made ahead itself and uses the matches only when its previous frame
+        holds those descriptors and that motion, so the results are those of
+        :meth:`detect` alone either way. One thread calls it, in frame order."""
         previous = self._ahead_last
         index = None
         if self.config.detector.float_descriptors:  # made here, once: the matches of the next frames search it

@@ -271,10 +271,9 @@ class Keyframes:
         those it was localised on and those later keyframes triangulated from its tracks
         (on icl-nuim-lr-kt3, where a frame was localised on about 50, the error of the
         frames between keyframes falls from 0.0100 to 0.0066 m, smooth ATE 0.0061
-        against 0.0082 m). When
-        too few of them are in the map, or the re-localisation does not converge or fits
-        under ``TrackingConfig.map_inlier_fraction`` of them, it keeps the composed pose.
-        Returns the poses."""
+        against 0.0082 m). When too few of them are in the map, or the re-localisation
+        does not converge or fits under ``TrackingConfig.map_inlier_fraction`` of them, it
+        keeps the composed pose. Returns the poses."""
         filt, cfg = self.filter, self.config
         for k, mp in self._poses.items():
             p0, q0 = self.composed(mp)
