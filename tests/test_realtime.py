@@ -110,7 +110,7 @@ def test_detect_is_pure_and_thread_safe(scene_frames):
 
 
 def test_add_frame_equals_detect_then_add_features(scene_frames):
-    # one front end after the other: each seeds OpenCV's random generator (FLANN's trees)
+    # one front end after the other: each seeds OpenCV's random generator (RANSAC's draws)
     # when made, so two front ends interleaved in one thread would not be comparable
     cam, ims = scene_frames.camera, scene_frames.images[:5]
     a = FrontEnd(cam, FrontEndConfig())
@@ -339,7 +339,8 @@ def test_the_run_holds_blas_to_its_setting_and_gives_it_back(scene_frames):
 
 def test_the_run_holds_opencv_to_its_thread_setting_and_gives_it_back(scene_frames):
     """``runtime.opencv_threads: auto`` gives OpenCV one thread while SIFT frames are
-    detected in the prefetch worker (FLANN's search in the tracking thread is serial), and
+    detected in the prefetch worker (the tracking thread's search of float descriptors
+    leaves OpenCV nothing to share), and
     leaves OpenCV's setting alone for ORB's parallel Hamming search and without a worker;
     an integer is applied as it is; OpenCV's setting is restored after the run."""
     from eifslam.system.runner import opencv_thread_count
@@ -374,8 +375,8 @@ def test_the_run_holds_opencv_to_its_thread_setting_and_gives_it_back(scene_fram
 @pytest.mark.parametrize("detector", ["orb", "sift"])
 def test_matches_made_ahead_give_the_front_ends_own_results(scene_frames, detector):
     """Features from ``match_ahead`` carry the matches with the previous detected frame
-    (the first pair searched in the whole frame, ORB exactly, SIFT by FLANN on indices
-    seeded from the descriptors; then near where the previous frame's motion predicts),
+    (the first pair searched in the whole frame, exactly; then, for SIFT, near where the
+    previous frame's motion predicts),
     which ``add_features`` uses in place of its own first search, with the same tracks;
     matches made against another frame or another motion than the front end's previous
     one (a frame skipped, and the frame after it) are ignored."""
