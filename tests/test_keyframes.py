@@ -205,12 +205,12 @@ def test_frames_between_keyframes_are_refined_on_every_map_feature_they_observe(
         if len(known) > 1.2 * len(first):
             grown.append((r.frame_id, mp, first))
     assert grown  # later keyframes added map features that these frames observe
-    t, P, _ = slam.trajectory()
-    sim = align_sim3(P, sc.positions[: len(P)])
+    stamps, P, _ = slam.trajectory()
+    sim = align_sim3(P, sc.positions[np.rint(stamps / 0.1).astype(int)])  # frame k at 0.1 k s
     errs_all, errs_first = [], []
     for j, mp, first in grown:
         c_all = np.trace(slam.results[j].covariance[:3, :3])
-        uv = {t: u for t, u in zip(*slam.frontend.map_observations(j))}
+        uv = dict(zip(*slam.frontend.map_observations(j)))
         X = filt.x[filt.layout.feature_columns(first)]
         p0, q0 = slam.keyframes.composed(mp)
         sol = localise_pose(sc.camera, p0, q0, X, np.array([uv[t] for t in first]),
