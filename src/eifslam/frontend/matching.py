@@ -442,7 +442,7 @@ class DescriptorMatcher:
         i1 = np.flatnonzero(d1 < self.ratio ** 2 * d2)  # squared distances: the ratio squared
         i2 = nearest[i1]
         if self.mutual:
-            keep = np.argmin(D[:, i2], axis=0) == i1 if len(i1) else np.zeros(0, bool)
+            keep = D[:, i2].argmin(axis=0) == i1  # each column's nearest row
             i1, i2 = i1[keep], i2[keep]
         _, first = np.unique(i2, return_index=True)  # a column claimed once (without the mutual check)
         first = np.sort(first)

@@ -189,9 +189,33 @@ class Keyframes:
     def localise(self, k: int, p0: Array, q0: Array) -> MapPose | None:
         """Localise frame *k* on the known map features it sees, from the guess
         ``(p0 (3,), q0 (4,))``; None when there are too few of them or it does not converge."""
-        filt, cfg = self.filter, self.config
-        if self.last is None or filt.layout.n_features == 0:
+        if self.last is None or self.filter.layout.n_features == 0:
             return None
+        fit = self._fit(k, p0, q0, robust_to_map=True, min_fraction=0.0)
+        if fit is None:
+            return None
+        p, q, cov, ids, uv, X, fraction = fit
+        shared = np.isin(ids, self._last_seen)
+        c_ref, _ = self.filter.pose(self.last)
+        return MapPose(int(k), self.last, p, q, cov, ids, uv, fraction, median_parallax_deg(X[shared], c_ref, p),
+                       float(shared.sum() / max(len(self._last_seen), 1)))
+
+    def _fit(self, k: int, p0: Array, q0: Array, robust_to_map: bool, min_fraction: float
+             ) -> tuple[Array, Array, Array, NDArray[np.int64], Array, Array, float] | None:
+        """Frame *k*'s pose on every map feature it observes, from the guess ``(p0, q0)``
+        (:func:`localise_pose`; with ``robust_to_map``, a far residual of a feature the map
+        has not fixed yet is kept within that feature's own uncertainty), and its
+        covariance with the map's uncertainty (:func:`map_pose_covariance`).
+
+        Returns
+        -------
+        (p (3,), q (4,), covariance (6, 6), track_ids (K,), uv (K, 2), X (K, 3), fraction) or None
+            The pose, its covariance, the inlier features with their pixels and positions,
+            and the fraction of the observed map features that are inliers; None with too
+            few map features, no convergence, a fraction under ``min_fraction`` or no
+            covariance.
+        """
+        filt, cfg = self.filter, self.config
         ids, uv = self.frontend.map_observations(k)
         known = filt.layout.has_features(ids)
         if known.sum() < cfg.tracking.min_map_features:
@@ -199,19 +223,15 @@ class Keyframes:
         ids, uv = np.asarray(ids, np.int64)[known], uv[known]
         X = filt.x[filt.layout.feature_columns(ids)]
         sol = localise_pose(self.camera, p0, q0, X, uv, min_inliers=cfg.tracking.min_map_features,
-                            inlier_px=cfg.tracking.inlier_radius_px, X_cov=lambda idx: filt.feature_covariances(ids[idx]))
-        if sol is None:
+                            inlier_px=cfg.tracking.inlier_radius_px,
+                            X_cov=(lambda idx: filt.feature_covariances(ids[idx])) if robust_to_map else None)
+        if sol is None or sol[2].mean() < min_fraction:
             return None
         p, q, inl = sol
-        cov = map_pose_covariance(self.camera, p, q, X[inl], self.config.zm_sigma_px,
-                                  self._map_uncertainty(ids[inl]))
+        cov = map_pose_covariance(self.camera, p, q, X[inl], cfg.zm_sigma_px, self._map_uncertainty(ids[inl]))
         if cov is None:
             return None
-        shared = np.isin(ids[inl], self._last_seen)
-        c_ref, _ = filt.pose(self.last)
-        return MapPose(int(k), self.last, p, q, cov, ids[inl], uv[inl], float(inl.mean()),
-                       median_parallax_deg(X[inl][shared], c_ref, p),
-                       float(shared.sum() / max(len(self._last_seen), 1)))
+        return p, q, cov, ids[inl], uv[inl], X[inl], float(inl.mean())
 
     def _map_uncertainty(self, track_ids):
         """``G -> G P_X G^T`` for the map features ``track_ids`` (their joint covariance
@@ -261,6 +281,7 @@ class Keyframes:
         for mp in self._poses.values():
             mp.p, mp.p_rel = mp.p * s, mp.p_rel * s
             mp.covariance = S @ mp.covariance @ S
+
     def refine(self) -> list[MapPose]:
         """Place every frame between keyframes on the current map (after smoothing or
         bundle adjustment): it starts from its reference keyframe's new pose composed with
@@ -274,22 +295,10 @@ class Keyframes:
         against 0.0082 m). When too few of them are in the map, or the re-localisation
         does not converge or fits under ``TrackingConfig.map_inlier_fraction`` of them, it
         keeps the composed pose. Returns the poses."""
-        filt, cfg = self.filter, self.config
         for k, mp in self._poses.items():
             p0, q0 = self.composed(mp)
             mp.p, mp.q = p0, q0
-            tids, uv = self.frontend.map_observations(k)
-            known = filt.layout.has_features(tids)
-            if known.sum() < cfg.tracking.min_map_features:
-                continue
-            tids, uv = np.asarray(tids, np.int64)[known], uv[known]
-            X = filt.x[filt.layout.feature_columns(tids)]
-            sol = localise_pose(self.camera, p0, q0, X, uv, min_inliers=cfg.tracking.min_map_features,
-                                inlier_px=cfg.tracking.inlier_radius_px)
-            if sol is None or sol[2].mean() < cfg.tracking.map_inlier_fraction:
-                continue
-            cov = map_pose_covariance(self.camera, sol[0], sol[1], X[sol[2]], self.config.zm_sigma_px,
-                                      self._map_uncertainty(tids[sol[2]]))
-            if cov is not None:
-                mp.p, mp.q, mp.covariance = sol[0], sol[1], cov
+            fit = self._fit(k, p0, q0, robust_to_map=False, min_fraction=self.config.tracking.map_inlier_fraction)
+            if fit is not None:
+                mp.p, mp.q, mp.covariance = fit[:3]
         return [self._poses[k] for k in sorted(self._poses)]
