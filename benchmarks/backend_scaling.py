@@ -27,12 +27,11 @@ Writes ``OUT/backend_scaling.json``::
 ``loop_closure``: at the end of the run a relative pose back to frame 1 is fused, its
 recovery is timed against one full sparse solve of the same ``I`` (held to
 ``max(2 s, 1.5 x full)``), then ``--after-loop`` more frames are tracked. ``accuracy``: the
-final (complete) filter estimate, with online relinearisation (``--relinearise-threshold``),
+final (complete) filter estimate, with online relinearisation (``--relinearise-threshold``, the
+system's by default),
 against Gauss-Newton on the same stored measurements run to convergence (held to cost
 ``<= 1.001 x`` and ATE ``<= 1.2 x`` the batch's), and the online estimate's distance from
-that optimum against draws of its posterior (``_posterior``). The online
-relinearisation (0.05 sigma and 1000 measurements a frame by default) is this benchmark's
-choice; the system's own default is no online relinearisation. The window is the
+that optimum against draws of its posterior (``_posterior``). The window is the
 system's (``experimental.window``) unless ``--window`` says otherwise.
 
 and ``OUT/backend_scaling.png``. ``nnz`` (non-zeros of ``I``) is counted incrementally from
@@ -119,10 +118,10 @@ class _Stop(Exception):
 
 
 def run(scene, seed: int, mode: str, max_dim: int, window: int, full_every: int | None,
-        relin: tuple[float | None, int] = (None, 50)):
+        relin: float | None = None):
     """Run the system until ``max_dim`` state entries; return rows, samples, filter."""
     fe = SyntheticFrontEnd(scene, seed, map_fraction=1.0)
-    fcfg = dataclasses.replace(fe.slam_config().filter, relinearise_threshold=relin[0], relinearise_budget=relin[1])
+    fcfg = dataclasses.replace(fe.slam_config().filter, relinearise_threshold=relin)
     filt = InformationFilter(scene.camera, fcfg, recovery=mode, window=window)
     slam = Slam(scene.camera, fe.slam_config(), frontend=fe, backend=filt)
     counter = BlockNnzCounter()
@@ -265,9 +264,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--window", type=int, default=SlamConfig().experimental.window,
                     help="steps before a state leaves the active window (default: the system's, experimental.window)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--relinearise-threshold", type=float, default=0.05,
-                    help="online relinearisation threshold (sigma) of the incremental run; 0: off")
-    ap.add_argument("--relinearise-budget", type=int, default=1000, help="online relinearisation budget per frame")
+    ap.add_argument("--relinearise-threshold", type=float, default=SlamConfig().filter.relinearise_threshold,
+                    help="online relinearisation threshold (sigma) of the incremental run (default: the "
+                         "system's); 0: off")
     ap.add_argument("--batch-passes", type=int, default=12, help="at most this many Gauss-Newton passes for the batch")
     ap.add_argument("--after-loop", type=int, default=30, help="frames tracked after the forced loop closure")
     ap.add_argument("--threads", default="1", help="BLAS threads (set before NumPy loads)")
@@ -279,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
     K = int(args.min_dim / 55) + 50
     scene = corridor_scene(K, rng)
     print(f"corridor: {K} frames, {len(scene.points)} points", flush=True)
-    relin = (None if args.relinearise_threshold <= 0 else args.relinearise_threshold, args.relinearise_budget)
+    relin = None if args.relinearise_threshold <= 0 else args.relinearise_threshold
     inc, samples, filt, counter, t_inc, slam = run(scene, args.seed, "incremental", args.min_dim, args.window,
                                                    args.full_every, relin)
     st = dict(vars(filt.incremental.stats))  # before the forced loop closure below

@@ -47,11 +47,11 @@ def test_printed_defaults_load_back_to_the_defaults(tmp_path, capsys):
 
 def test_a_file_changes_what_it_names_and_is_checked(tmp_path, capsys):
     path = tmp_path / "c.yaml"
-    path.write_text("smoothing:\n  mode: filter\nexperimental:\n  window: 7\n  relinearise_threshold: 1e-1\n"
+    path.write_text("smoothing:\n  mode: filter\nexperimental:\n  window: 7\n  zm_gate_chi2: 1.2e+1\n"
                     "frontend:\n  detector: orb\n")
     cfg = read_config(path)
     assert cfg.smoothing.mode == "filter" and cfg.experimental.window == 7
-    assert cfg.filter.relinearise_threshold == 0.1
+    assert cfg.filter.gate_chi2 == 12.0
     assert cfg.frontend.detector == "orb" and cfg.frontend.max_features == SlamConfig().frontend.max_features
     assert read_config(tmp_path / "c.yaml") == SlamConfig.from_dict(yaml.safe_load(config_yaml(cfg)))
     assert cli_main(["config", str(path)]) == 0

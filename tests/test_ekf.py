@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from eifslam.baselines.ekf import DenseEKF
@@ -17,9 +19,11 @@ def run(sc, seed: int, ekf: bool, **kw):
     The EKF linearises at its current mean, so the EIF runs without first-estimates
     Jacobians here (linearised alike)."""
     fe = SyntheticFrontEnd(sc, seed, map_fraction=1.0, **kw)
+    config = fe.slam_config(experimental={"first_estimate_jacobians": False})
     # linearised alike: the EKF never relinearises, so the EIF's online relinearisation is off
-    config = fe.slam_config(experimental={"first_estimate_jacobians": False, "relinearise_threshold": None})
-    slam = Slam(sc.camera, config, frontend=fe, backend=DenseEKF(sc.camera, config.filter) if ekf else None)
+    backend = DenseEKF(sc.camera, config.filter) if ekf else \
+        InformationFilter(sc.camera, dataclasses.replace(config.filter, relinearise_threshold=None))
+    slam = Slam(sc.camera, config, frontend=fe, backend=backend)
     for k in range(len(sc.positions)):
         slam.track(k)
     slam.filter.complete_estimate()

@@ -43,7 +43,7 @@ def test_relinearised_information_equals_fusing_at_the_new_point(first):
     with the Jacobians where ``first_estimate_jacobians`` takes them (the states' first
     estimates are the truth in both filters)."""
     sc = corridor_scene(5, np.random.default_rng(1), points_per_metre=12.0)
-    cfg = FilterConfig(relinearise_threshold=1e-6, relinearise_budget=10_000, first_estimate_jacobians=first)
+    cfg = FilterConfig(relinearise_threshold=1e-6, first_estimate_jacobians=first)
     a = _small_problem(sc, cfg, None)
     a.recover_active()  # the window is valid: every state is active
     shift = np.random.default_rng(2).normal(scale=0.05, size=a.dim)
@@ -141,7 +141,7 @@ def test_relinearisation_brings_the_estimate_closer_to_the_optimum(runs):
 
 def test_bad_relinearisation_settings_are_rejected():
     for kw in (dict(relinearise_threshold=0.0), dict(relinearise_threshold=float("nan")),
-               dict(relinearise_budget=0), dict(relinearise_budget=2.5)):
+               dict(relinearise_threshold="0.1")):
         with pytest.raises(ConfigError):
             FilterConfig(**kw)
     sc = corridor_scene(3, np.random.default_rng(0))
@@ -155,7 +155,7 @@ def test_measurements_are_relinearised_on_their_last_step_in_the_window():
     is relinearised once, at the current estimate, and after it none is a candidate; the
     window stays exact."""
     sc = corridor_scene(5, np.random.default_rng(1), points_per_metre=12.0)
-    cfg = FilterConfig(relinearise_threshold=1e3, relinearise_budget=10_000)
+    cfg = FilterConfig(relinearise_threshold=1e3)
     a = _small_problem(sc, cfg, None)
     n = len(a.store.all_features()) + len(a.store.relative)
     window = a.incremental.feature_window

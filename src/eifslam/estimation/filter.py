@@ -76,7 +76,7 @@ class InformationFilter:
         self._factor: SchurFactor | None = None
         if not isinstance(recovery, RecoveryMode):
             online = None if self.config.relinearise_threshold is None else \
-                OnlineRelinearisation(self.config.relinearise_threshold, self.config.relinearise_budget)
+                OnlineRelinearisation(self.config.relinearise_threshold)
             recovery = WindowRecovery(window, online) if Recovery.parse(recovery, "recovery") == Recovery.INCREMENTAL \
                 else FullRecovery()
         self.recovery: RecoveryMode = recovery

@@ -201,7 +201,7 @@ class WindowRecovery:
     def fresh(self) -> "WindowRecovery":
         inc = self.incremental
         out = WindowRecovery(inc.feature_window, None if self.online is None else
-                             OnlineRelinearisation(self.online.threshold, self.online.budget))
+                             OnlineRelinearisation(self.online.threshold))
         out.incremental = dataclasses.replace(inc, stats=RecoveryStats())
         return out
 

@@ -15,23 +15,23 @@ Which measurements: those whose *linearisation error* at the current estimate ``
 exceeds ``threshold`` standard deviations (``sqrt(e^T W e)``, the whitened distance
 between the measurement's prediction and its linearised prediction): a threshold on
 what the linearisation costs the measurement's residual, in its own units, rather than
-a fixed distance in metres. At most ``budget`` per frame, largest error first. ``e`` is
-second order in ``x - x0``; it is evaluated only where the first-order change
-``J0 (x - x0)`` (whitened, from the stored Jacobian, no model evaluation) exceeds the
-threshold, largest first and at most ``EVALUATIONS_PER_BUDGET * budget`` per frame,
-which bounds the per-frame cost whatever the map size.
+a fixed distance in metres. ``e`` is second order in ``x - x0``; it is evaluated only
+where the first-order change ``J0 (x - x0)`` (whitened, from the stored Jacobian, no
+model evaluation) exceeds the threshold.
 
 A measurement on its last step in the window (its feature, or one of its poses, not
 measured for ``window - 1`` steps: unless measured again in this frame, the step's
 marginalisation makes its linearisation final) is relinearised at the current estimate
-whatever its error, after the ones over the threshold and within the same budget: the
-last estimate it can take is the best one it will have.
+whatever its error: the last estimate it can take is the best one it will have.
 
 Only measurements whose states are all in the incremental recovery's active window are
 candidates (``live``: a ``Zm`` while its feature was measured within the feature window,
 a ``ZR``/``ZT`` while both poses were measured within the pose window); once one of their
 states is marginalised their linearisation is final (the elimination used it). So the
-work per frame is bounded by the window, not the map. ``Zm`` and ``ZR``/``ZT`` are
+work per frame is bounded by the window, not the map, and every candidate over the
+threshold is relinearised in the frame it goes over (a budget per frame, largest error
+first, left the filter's NEES on the synthetic corridor as without relinearisation:
+``docs/estimator.md``, Consistency). ``Zm`` and ``ZR``/``ZT`` are
 relinearised; priors and the quaternion-norm pseudo-measurements are not. Measurements
 fused before ``I`` was replaced wholesale (smoothing, rescaling) are no longer tracked;
 sessions keep the candidates.
@@ -59,10 +59,6 @@ if TYPE_CHECKING:  # the filter owns this object; no import at run time
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-EVALUATIONS_PER_BUDGET = 8
-"""At most this many times ``budget`` measurements are evaluated per frame and kind."""
-
-
 @dataclass
 class RelinearisationStats:
     """Counters of :class:`OnlineRelinearisation`.
@@ -74,14 +70,11 @@ class RelinearisationStats:
         change exceeded the threshold, or they were on their last step in the window),
         summed over frames.
     relinearised : measurements relinearised, summed over frames.
-    over_budget : measurements above the threshold (or on their last step) left by the
-        budget: for a later frame, or frozen as they are.
     """
 
     steps: int = 0
     evaluated: int = 0
     relinearised: int = 0
-    over_budget: int = 0
 
 
 @dataclass
@@ -122,14 +115,6 @@ class LiveBatch:
                                  for k in ("idx", "J", "W", "innov", "x0")))
 
 
-def _rank(err2: Array, last: NDArray[np.bool_], t2: float) -> Array:
-    """Ranking key of measurements with squared errors ``err2 (N,)``: the error itself
-    above the squared threshold ``t2``; in ``[t2 / 2, t2]`` for one on its last step in
-    the window (below every one over the threshold, larger errors first); -1 (not
-    relinearised) otherwise."""
-    return np.where(err2 > t2, err2, np.where(last, 0.5 * (t2 + np.minimum(err2, t2)), -1.0))
-
-
 def contribution(idx: IntArray, J: Array, W: Array, innov: Array, x0: Array) -> tuple[Array, Array]:
     """``(J^T W J (N, k, k), J^T W (innov + J x0) (N, k))``: eq. 8's terms of ``N``
     measurements linearised at their own points ``x0 (N, k)``."""
@@ -146,12 +131,9 @@ class OnlineRelinearisation:
     threshold : float
         Whitened linearisation error (standard deviations of the measurement) above
         which a measurement is relinearised (> 0).
-    budget : int
-        At most this many measurements relinearised per frame (>= 1).
     """
 
     threshold: float
-    budget: int
     stats: RelinearisationStats = field(default_factory=RelinearisationStats)
     features: LiveBatch | None = None
     relative: LiveBatch | None = None
@@ -159,8 +141,6 @@ class OnlineRelinearisation:
     def __post_init__(self) -> None:
         if not (np.isfinite(self.threshold) and self.threshold > 0):
             raise ConfigError(f"relinearisation threshold must be positive, got {self.threshold!r}")
-        if not (isinstance(self.budget, (int, np.integer)) and self.budget >= 1):
-            raise ConfigError(f"relinearisation budget must be an integer >= 1, got {self.budget!r}")
 
     # -- recording (the filter calls these when it fuses and stores) -----------------------
     def record_features(self, obs: FeatureObservations, idx: IntArray, J: Array, W: Array, innov: Array,
@@ -234,8 +214,9 @@ class OnlineRelinearisation:
 
     # -- the step -----------------------------------------------------------------------------
     def step(self, filt: "InformationFilter") -> int:
-        """Relinearise the live measurements over the threshold (at most ``budget``) at
-        ``filt.x``; return how many. Call before the frame's recovery."""
+        """Relinearise the live measurements over the threshold, and those on their last
+        step in the window, at ``filt.x``; return how many. Call before the frame's
+        recovery."""
         inc = filt.incremental
         self.stats.steps += 1
         if inc is None:
@@ -257,14 +238,10 @@ class OnlineRelinearisation:
             dx = x[live.idx] - live.x0
             d = np.einsum("nmk,nk->nm", live.J, dx)
             f2 = np.einsum("ni,nij,nj->n", d, live.W, d)
-            # on their last step in the window: evaluated whatever their change, ranked
-            # after every measurement over the threshold
+            # on their last step in the window: evaluated whatever their change
             last = ~self._in_window(inc, name, live.idx, less=1)
-            rank = _rank(f2, last, self.threshold**2)
-            cand = np.flatnonzero(rank > 0)
-            cap = EVALUATIONS_PER_BUDGET * self.budget
-            if len(cand) > cap:  # the largest first-order changes first; the rest wait
-                cand = cand[np.argpartition(-rank[cand], cap)[:cap]]
+            t2 = self.threshold**2
+            cand = np.flatnonzero((f2 > t2) | last)
             self.stats.evaluated += len(cand)
             if len(cand) == 0:
                 continue
@@ -282,18 +259,9 @@ class OnlineRelinearisation:
             e = live.innov[cand] - d[cand] - innov
             err2 = np.einsum("ni,nij,nj->n", e, live.W[cand], e)
             ok &= np.isfinite(err2) & np.all(np.isfinite(J), axis=(1, 2)) & np.all(np.isfinite(innov), axis=1)
-            parts.append((name, live, cand, np.where(ok, _rank(err2, last[cand], self.threshold**2), -1.0), J, innov))
-        over = [np.flatnonzero(e2 > 0) for _, _, _, e2, _, _ in parts]
-        n_over = sum(len(o) for o in over)
-        if n_over == 0:
-            return 0
-        cut = -np.inf
-        if n_over > self.budget:
-            cut = np.sort(np.concatenate([p[3][o] for p, o in zip(parts, over)]))[-self.budget]
-            self.stats.over_budget += n_over - self.budget
+            parts.append((live, cand, np.flatnonzero(ok & ((err2 > t2) | last[cand])), J, innov))
         done = 0
-        for (name, live, cand, e2, J, innov), o in zip(parts, over):
-            o = o[e2[o] >= cut][: self.budget - done]
+        for live, cand, o, J, innov in parts:
             if not len(o):
                 continue
             sel = cand[o]

@@ -179,10 +179,6 @@ class ExperimentalConfig:
     first_estimate_jacobians: FirstEstimates = setting(
         FirstEstimates.OFF, "Jacobians of new measurements at first estimates: off, features or all",
         OneOf(FirstEstimates))
-    relinearise_threshold: float | None = setting(
-        None, "online relinearisation of a stored measurement whose linearisation error exceeds this many "
-              "standard deviations (null: off)", Real(0.0, 1e9, lo_open=True, none=True))
-    relinearise_budget: int = setting(50, "measurements relinearised online per frame at most", Int(1))
     zm_gate_chi2: float | None = setting(9.21, "a Zm whose normalised innovation squared (2 DOF) exceeds this "
                                                "is not fused (null: every Zm)", Real(0.0, 1e9, lo_open=True,
                                                                                     none=True))
@@ -257,9 +253,7 @@ class SlamConfig:
         """The information filter's options: its ``Zm`` gate and linearisation choices from
         ``experimental``, the estimation layer's defaults otherwise."""
         ex = self.experimental
-        return FilterConfig(gate_chi2=ex.zm_gate_chi2, first_estimate_jacobians=ex.first_estimate_jacobians,
-                            relinearise_threshold=ex.relinearise_threshold,
-                            relinearise_budget=ex.relinearise_budget)
+        return FilterConfig(gate_chi2=ex.zm_gate_chi2, first_estimate_jacobians=ex.first_estimate_jacobians)
 
     @property
     def float_descriptors(self) -> bool:
