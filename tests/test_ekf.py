@@ -15,11 +15,9 @@ from eifslam.system.slam import Slam
 
 def run(sc, seed: int, ekf: bool, **kw):
     """The system over every frame of ``sc`` with the EIF (its default back end) or the
-    dense EKF, on the same simulated measurements; the filter at its complete estimate.
-    The EKF linearises at its current mean, so the EIF runs without first-estimates
-    Jacobians here (linearised alike)."""
+    dense EKF, on the same simulated measurements; the filter at its complete estimate."""
     fe = SyntheticFrontEnd(sc, seed, map_fraction=1.0, **kw)
-    config = fe.slam_config(experimental={"first_estimate_jacobians": False})
+    config = fe.slam_config()
     # linearised alike: the EKF never relinearises, so the EIF's online relinearisation is off
     backend = DenseEKF(sc.camera, config.filter) if ekf else \
         InformationFilter(sc.camera, dataclasses.replace(config.filter, relinearise_threshold=None))

@@ -106,11 +106,10 @@ def nees_runs():
 
     Settings: new features need 4 degrees of parallax, and neither gate is used. Measured
     with 50 runs of 10 frames (chi-square interval 5.08 - 7.00; `benchmarks/consistency.py
-    --runs 50 --frames 10 --every 10 --set ...`): here 6.22 (filter) and 5.84 (smooth)
-    (5.9 and 5.8 with first-estimates Jacobians). Not at
-    the system's defaults, where the run is not consistent (docs/estimator.md,
+    --runs 50 --frames 10 --every 10 --set ...`): here 6.22 (filter) and 5.84 (smooth).
+    Not at the system's defaults, where the run is not consistent (docs/estimator.md,
     Consistency): 9.55 (filter) and 7.44 (smooth) at the defaults (2 degrees, Zm gate 9.21
-    against R alone, ZR/ZT gate 50, no first-estimates Jacobians). The gates test innovations against the
+    against R alone, ZR/ZT gate 50). The gates test innovations against the
     measurement noise alone and refuse correct measurements that disagree with the
     estimate; features triangulated with 2 degrees have poor first estimates, which the
     filter never relinearises.
@@ -215,13 +214,11 @@ def test_smoothing_never_returns_a_higher_common_cost_than_the_filter():
     f.fuse_relative([RelativePose(rp.i, rp.j, rp.q_ij, t, rp.cov)])
     f.complete_estimate()
     x0, I0, n_rel = f.x.copy(), f.information_matrix().copy(), len(f.store.relative)
-    fe0 = f.first_estimates.copy()
     g = copy.deepcopy(f)
     rep = smooth(f, max_passes=6, feature_chi2=30.0, relative_chi2=50.0, max_rounds=0)
     assert rep.kept == "filter" and rep.common_costs[1] > rep.common_costs[0]
     assert "raised the common cost" in rep.reason
     np.testing.assert_array_equal(f.x, x0)
-    np.testing.assert_array_equal(f.first_estimates, fe0)
     assert abs(f.information_matrix() - I0).max() == 0 and len(f.store.relative) == n_rel
     rep = smooth(g, max_passes=6, feature_chi2=30.0, relative_chi2=50.0)
     assert rep.kept != "filter" and rep.rejected_relative == 1
@@ -305,3 +302,29 @@ def test_restart_forgets_every_state_and_keeps_the_kind_of_recovery(recovery):
         assert used.incremental.full_solve_flops_per_entry == 123.0
         used.incremental.full_solve_flops_per_entry = 2e4
     np.testing.assert_array_equal(run(used), run(InformationFilter(cam, recovery=recovery, window=3)))
+
+
+def test_a_state_dict_with_an_x_first_entry_loads_as_one_without():
+    """``state_dict`` writes no ``x_first``; ``load_state_dict`` does not read the one a
+    session file of an earlier version holds (first estimates): the filter loads as from
+    the same dict without it."""
+    from eifslam.estimation.filter import InformationFilter
+    from eifslam.estimation.measurements import FeatureObservations
+
+    sc = corridor_scene(3, np.random.default_rng(0))
+    f = InformationFilter(sc.camera, recovery="full")
+    pts = np.flatnonzero(sc.visible(0) & sc.visible(1))[:10]
+    for k in range(2):
+        f.add_pose(k, sc.positions[k], sc.quats[k])
+    f.add_features(pts, sc.points[pts])
+    f.fuse_features(FeatureObservations.concatenate([FeatureObservations.make(np.full(len(pts), k), pts,
+                                                                              sc.project(k, pts)) for k in range(2)]))
+    d = f.state_dict()
+    assert "x_first" not in d
+    plain = InformationFilter(sc.camera, recovery="full")
+    plain.load_state_dict(d)
+    with_first = InformationFilter(sc.camera, recovery="full")
+    with_first.load_state_dict({**d, "x_first": d["x"] + 1.0})
+    np.testing.assert_array_equal(with_first.x, plain.x)
+    np.testing.assert_array_equal(with_first.information_vector(), plain.information_vector())
+    assert abs(with_first.information_matrix() - plain.information_matrix()).max() == 0

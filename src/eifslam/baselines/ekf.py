@@ -5,8 +5,7 @@ and map feature, augmented exactly as in the EIF (poses ``[p, q]``, features ``X
 fed the *same* measurements linearised the *same* way: every ``Zm``, ``ZR``/``ZT``, gauge
 prior, scale prior and quaternion-norm pseudo-measurement is linearised at the current
 ``x`` by :mod:`eifslam.estimation.factors` (the functions the EIF uses) into
-``(idx, J, W, innov)`` (``experimental.first_estimate_jacobians`` is not applied: compare it
-with an EIF that has it off). The EKF buffers them and applies them in one covariance update at
+``(idx, J, W, innov)``. The EKF buffers them and applies them in one covariance update at
 :meth:`DenseEKF.recover` (so, like the EIF, all the measurements of a frame are
 linearised at the same point):
 

@@ -3,7 +3,7 @@
 * :mod:`.state`: the state layout (which entries of ``x`` belong to which pose or feature).
 * :mod:`.measurements`: ``Zm`` batches, ``ZR``/``ZT`` relative poses and their store.
 * :mod:`.information`: the information matrix ``I`` and vector ``i`` as they are summed.
-* :mod:`.options`: :class:`~.options.FilterConfig` and the typed options ``Recovery``, ``FirstEstimates``, ``NoiseEstimate``.
+* :mod:`.options`: :class:`~.options.FilterConfig` and the typed options ``Recovery``, ``NoiseEstimate``.
 * :mod:`.factors`: every measurement kind linearised at an estimate (shared by the back ends).
 * :mod:`.recovery`: sparse Cholesky with features eliminated first (the full solve).
 * :mod:`.blocks`: the 3x3 feature and 7x7 pose blocks: gathered, factorised, inverted, applied in batches.

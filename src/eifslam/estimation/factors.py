@@ -115,7 +115,7 @@ def features(layout: StateLayout, x: Array, camera: PinholeCamera, config: Filte
     chi2 : (N,) normalised innovation squared (``inf`` where not finite or behind the camera).
     """
     idx = np.concatenate([layout.pose_columns(obs.pose), layout.feature_columns(obs.feature)], 1)
-    h, J, depth = feature_model_at(idx, x, x, camera)
+    h, J, depth = feature_model_at(idx, x, camera)
     innov = obs.uv - h
     chi2 = np.sum(innov**2, 1) / obs.sigma_px**2
     ok = (depth > config.min_depth) & np.isfinite(chi2)
@@ -126,19 +126,16 @@ def features(layout: StateLayout, x: Array, camera: PinholeCamera, config: Filte
     return ok, idx, J, W, innov, chi2
 
 
-def feature_model_at(idx: NDArray[np.int64], x_pose: Array, x_feature: Array,
-                     camera: PinholeCamera) -> tuple[Array, Array, Array]:
-    """The ``Zm`` model of stored state indices ``idx (N, 10)`` (``[pose 7, feature 3]``),
-    the pose entries read from ``x_pose`` and the feature entries from ``x_feature`` (the
-    same vector, or the first estimates for first-estimates Jacobians).
+def feature_model_at(idx: NDArray[np.int64], x: Array, camera: PinholeCamera) -> tuple[Array, Array, Array]:
+    """The ``Zm`` model of stored state indices ``idx (N, 10)`` (``[pose 7, feature 3]``)
+    at the estimate ``x``.
 
     Returns
     -------
     h : (N, 2) predicted pixels; J : (N, 2, 10) Jacobian; depth : (N,) depth in the camera.
     """
     c = camera
-    h, Jp, Jf, depth = models.feature_model(x_pose[idx[:, :3]], x_pose[idx[:, 3:7]], x_feature[idx[:, 7:]],
-                                            c.fx, c.fy, c.cx, c.cy)
+    h, Jp, Jf, depth = models.feature_model(x[idx[:, :3]], x[idx[:, 3:7]], x[idx[:, 7:]], c.fx, c.fy, c.cx, c.cy)
     return h, np.concatenate([Jp, Jf], 2), depth
 
 

@@ -28,7 +28,7 @@ from .factors import Linearised
 from .incremental import IncrementalRecovery
 from .measurements import (FeatureObservations, MeasurementStore, PriorStore, RelativePose, pack_features,
                            pack_relative, unpack_features, unpack_relative)
-from .options import WINDOW, FilterConfig, FirstEstimates, Recovery
+from .options import WINDOW, FilterConfig, Recovery
 from .recovery import SchurFactor, factorize
 from .recovery_modes import FullRecovery, RecoveryMode, WindowRecovery
 from .relinearisation import OnlineRelinearisation
@@ -72,7 +72,6 @@ class InformationFilter:
         self.store = MeasurementStore()
         self.priors = PriorStore()
         self._x = np.zeros(64)
-        self._xfe = np.zeros(64)  # first estimates (config.first_estimate_jacobians)
         self._factor: SchurFactor | None = None
         if not isinstance(recovery, RecoveryMode):
             online = None if self.config.relinearise_threshold is None else \
@@ -91,7 +90,6 @@ class InformationFilter:
         self.store = MeasurementStore()
         self.priors = PriorStore()
         self._x = np.zeros(64)
-        self._xfe = np.zeros(64)
         self._factor = None
         self.recovery = self.recovery.fresh()
         self.info = self.recovery.information_store()
@@ -138,20 +136,13 @@ class InformationFilter:
         """Current estimate ``(dim,)`` (a view; linearisation point)."""
         return self._x[: self.dim]
 
-    @property
-    def first_estimates(self) -> Array:
-        """First estimate of every state ``(dim,)`` (a view): its initial guess, or its value
-        at the last :meth:`relinearise` (``config.first_estimate_jacobians`` uses it)."""
-        return self._xfe[: self.dim]
-
     def _grow(self) -> None:
         n = self.dim
         if n > len(self._x):
             size = max(n, 2 * len(self._x))
-            for name in ("_x", "_xfe"):
-                new, old = np.zeros(size), getattr(self, name)
-                new[: len(old)] = old
-                setattr(self, name, new)
+            new = np.zeros(size)
+            new[: len(self._x)] = self._x
+            self._x = new
         self.info.grow(n)
 
     def add_pose(self, frame_id: int, p: Array, q: Array) -> None:
@@ -163,7 +154,6 @@ class InformationFilter:
         off = self.layout.add_pose(frame_id)
         self._grow()
         self._x[off : off + 3], self._x[off + 3 : off + 7] = p, q
-        self._xfe[off : off + 7] = self._x[off : off + 7]
         self._factor = None
         self._fuse(factors.quat_norm(self.layout, self.x, [frame_id], self.config.quat_norm_sigma))
         self.priors.weak[(StateKind.POSE, int(frame_id))] = np.concatenate([p, q])
@@ -177,7 +167,7 @@ class InformationFilter:
         for tid, xyz in zip(track_ids, X):
             off = self.layout.add_feature(tid)
             self._grow()
-            self._x[off : off + 3] = self._xfe[off : off + 3] = xyz
+            self._x[off : off + 3] = xyz
             self.priors.weak[(StateKind.FEATURE, int(tid))] = xyz.copy()
         self._factor = None
         if len(X):
@@ -272,17 +262,9 @@ class InformationFilter:
         ok : (N,) bool, usable (predicted depth above ``min_depth``, finite, inside the gate).
         idx : (N, 10) state indices ``[pose 7, feature 3]``; J : (N, 2, 10);
         W : (N, 2, 2) information; innov : (N, 2) ``z - h(x)``; chi2 : (N,) normalised
-        innovation squared against ``R`` (``inf`` where not finite or behind the camera). With
-        ``config.first_estimate_jacobians`` ``"features"`` (``"all"``), ``J`` is taken with
-        the features (every state) at their first estimates, and a measurement must be
-        usable there too; everything else at ``x``.
+        innovation squared against ``R`` (``inf`` where not finite or behind the camera).
         """
-        ok, idx, J, W, innov, chi2 = factors.features(self.layout, self.x, self.camera, self.config, obs, gate)
-        at = self.config.first_estimate_jacobians.points(self.x, self.first_estimates)
-        if at is not None and len(obs):  # usable there too: in front, a finite prediction
-            h, J, depth = factors.feature_model_at(idx, *at, self.camera)
-            ok &= (depth > self.config.min_depth) & np.isfinite(np.sum((obs.uv - h) ** 2, 1) / obs.sigma_px**2)
-        return ok, idx, J, W, innov, chi2
+        return factors.features(self.layout, self.x, self.camera, self.config, obs, gate)
 
     def fuse_features(self, obs: FeatureObservations, store: bool = True, gate: bool = True,
                       recent: bool = True) -> FeatureObservations:
@@ -311,13 +293,9 @@ class InformationFilter:
         Returns
         -------
         idx : (N, 14) state indices ``[pose i, pose j]``; J : (N, 5, 14);
-        W : (N, 5, 5) information of the joint measurement; innov : (N, 5). ``J`` at the
-        first estimates with ``config.first_estimate_jacobians`` ``"all"``.
+        W : (N, 5, 5) information of the joint measurement; innov : (N, 5).
         """
-        idx, J, W, innov = factors.relative(self.layout, self.x, self.config, rps)
-        if self.config.first_estimate_jacobians == FirstEstimates.ALL:  # poses' first estimates
-            J = factors.relative(self.layout, self.first_estimates, self.config, rps)[1]
-        return idx, J, W, innov
+        return factors.relative(self.layout, self.x, self.config, rps)
 
     def fuse_relative(self, rps: list[RelativePose], store: bool = True) -> None:
         """Fuse ``ZR`` and ``ZT`` of each relative pose jointly (5x5 covariance)."""
@@ -375,8 +353,7 @@ class InformationFilter:
         that a ``Zm`` behind its camera, and those of a feature whose usable views no longer
         constrain it (fewer than two in front of their cameras, or a singular block:
         :func:`~eifslam.estimation.factors.constrained_features`), are left out (the
-        feature keeps its weak prior only). The current ``x`` becomes every state's first
-        estimate.
+        feature keeps its weak prior only).
 
         Returns
         -------
@@ -385,7 +362,6 @@ class InformationFilter:
             ``ZR``/``ZT`` and :meth:`prior_terms`, the terms of the cost the new
             information's solution minimises to first order.
         """
-        self.first_estimates[:] = self.x
         self.info.reset()
         self._factor = None
         with self.recovery.corrections():
@@ -507,7 +483,6 @@ class InformationFilter:
             "is_feature": np.array([k.kind == StateKind.FEATURE for k in order], bool),
             "id": np.array([k.id for k in order], np.int64),
             "x": x,
-            "x_first": self.first_estimates.copy(),
             "I": {"data": I.data.astype(float), "indices": I.indices.astype(np.int64),
                   "indptr": I.indptr.astype(np.int64)},
             "i": self.information_vector(),
@@ -528,6 +503,8 @@ class InformationFilter:
     def load_state_dict(self, d) -> None:
         """Restore :meth:`state_dict` into this (new, empty) filter. The incremental
         recovery's window starts invalid and is rebuilt from ``I`` at the next step.
+        Entries it does not read are ignored, such as the ``x_first`` (first estimates)
+        of session files of earlier versions.
 
         Raises
         ------
@@ -554,7 +531,6 @@ class InformationFilter:
         check_index(indices, n, "array 'indices'")
         self.info.set(sp.csc_matrix((data, indices, indptr), shape=(n, n)), take(d, "i", np.float64, (n,)))
         self._x[:n] = take(d, "x", np.float64, (n,))
-        self._xfe[:n] = take(d, "x_first", np.float64, (n,)) if "x_first" in d else self._x[:n]
         pp = sub(d, "prior_pose")
         pids = take_ids(pp, "ids")
         self._check_states(StateKind.POSE, pids, "prior_pose")

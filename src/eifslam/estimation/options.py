@@ -1,5 +1,5 @@
 """Typed options of the estimation layer: :class:`FilterConfig`, :class:`Recovery`,
-:class:`FirstEstimates`, :class:`NoiseEstimate`.
+:class:`NoiseEstimate`.
 
 The enums are ``str``-valued: they accept and compare equal to the plain strings of
 configuration files (``Recovery("full") == "full"``).
@@ -50,36 +50,6 @@ class Recovery(Choice):
     FULL = "full"
 
 
-class FirstEstimates(Choice):
-    """Which states' Jacobians a new measurement takes at their *first* estimates
-    (``FilterConfig.first_estimate_jacobians``).
-
-    ``OFF``: every Jacobian at the current estimate; ``FEATURES``: the map features' at
-    their first estimates (the multi-view point they entered with), the poses' at the
-    current estimate; ``ALL``: every state's at its first estimate.
-    """
-
-    OFF = "off"
-    FEATURES = "features"
-    ALL = "all"
-
-    @classmethod
-    def parse(cls, value: "str | bool | Choice", what: str):
-        """As :meth:`Choice.parse`; ``True`` is ``ALL`` and ``False`` ``OFF`` (the option
-        was a bool before ``FEATURES``)."""
-        if isinstance(value, (bool, np.bool_)):
-            return cls.ALL if value else cls.OFF
-        return super().parse(value, what)
-
-    def points(self, x: np.ndarray, first: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """Where a ``Zm``'s Jacobian is taken: the vectors its pose entries and its feature
-        entries are read from (``x`` the current estimate, ``first`` the first estimates);
-        None for ``OFF`` (at ``x``, with the innovation)."""
-        if self == FirstEstimates.OFF:
-            return None
-        return (x if self == FirstEstimates.FEATURES else first), first
-
-
 class NoiseEstimate(Choice):
     """How robust smoothing sets its ``Zm`` gate from the residuals
     (``SlamConfig.experimental.noise_estimate``; :mod:`eifslam.estimation.noise`).
@@ -123,26 +93,6 @@ class FilterConfig:
         its initial guess, so that a state whose measurements were all rejected (gate,
         depth) never makes ``I`` singular. Its information, ``1e-6`` by default, is
         negligible next to any measurement's; it touches diagonal blocks only.
-    first_estimate_jacobians : FirstEstimates or {"off", "features", "all"} or bool
-        Linearise every new ``Zm`` (and, with ``"all"``, ``ZR``/``ZT``) with the Jacobians
-        of some states at their *first* estimates (the value they entered the state with;
-        smoothing's relinearisation makes the smoothed estimate the new first one), the
-        innovation at the current estimate (first-estimates Jacobians, Huang, Mourikis &
-        Roumeliotis 2008). The filter never relinearises what it fused, so Jacobians of
-        one state at different points give it information in directions the
-        measurements cannot observe, and it grows overconfident as a run goes on.
-        ``"features"`` takes the map features' Jacobians at their first estimates (the
-        point refined on every view they entered with) and the poses' at the current
-        estimate: a feature is measured from many frames, a pose almost only in the frame
-        it enters, so this is where the inconsistency comes from (synthetic corridor, 50
-        runs x 50 frames, filter's mean NEES 30.8 off, 13.6 ``"features"``; the poses' first
-        estimates, guesses from a relative pose and the last step length, only add
-        linearisation error: middlebury-templering's filter ATE 0.00159 m ``"features"``,
-        0.00202 m ``"all"``). ``True`` is ``"all"`` and ``False`` ``"off"``. Off by default:
-        on kitti-07 the filter then lands at the cost's minimum, whose scale drifts
-        (filter ATE 0.24 m off, 0.42-0.44 m ``"features"``, seeds 0-2), which outweighs
-        middlebury-templering's gain (smoothed ATE 20% lower) when chosen
-        leave-one-set-out (``docs/estimator.md``, Consistency).
     relinearise_threshold : float or None
         Online relinearisation (incremental recovery only,
         :mod:`eifslam.estimation.relinearisation`): before each recovery, a stored ``Zm``
@@ -162,7 +112,6 @@ class FilterConfig:
     gate_chi2: float | None = None
     min_depth: float = 1e-6
     weak_prior_sigma: float = 1e3
-    first_estimate_jacobians: FirstEstimates = FirstEstimates.OFF
     relinearise_threshold: float | None = 0.3
 
     def __post_init__(self) -> None:
@@ -170,8 +119,6 @@ class FilterConfig:
             v = getattr(self, key)
             if not (np.isfinite(v) and v > 0):
                 raise ConfigError(f"filter.{key} must be a positive number, got {v!r}")
-        object.__setattr__(self, "first_estimate_jacobians",
-                           FirstEstimates.parse(self.first_estimate_jacobians, "filter.first_estimate_jacobians"))
         if self.gate_chi2 is not None and not self.gate_chi2 > 0:
             raise ConfigError("filter.gate_chi2 must be positive or None")
         t = self.relinearise_threshold
@@ -179,4 +126,4 @@ class FilterConfig:
             raise ConfigError(f"filter.relinearise_threshold must be a positive number or None, got {t!r}")
 
 
-__all__ = ["FilterConfig", "FirstEstimates", "NoiseEstimate", "Recovery", "WINDOW"]
+__all__ = ["FilterConfig", "NoiseEstimate", "Recovery", "WINDOW"]

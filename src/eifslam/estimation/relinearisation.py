@@ -247,10 +247,7 @@ class OnlineRelinearisation:
                 continue
             i = live.idx[cand]
             if name == "features":  # factors.features on the stored indices (no layout look-ups)
-                h, J, depth = factors.feature_model_at(i, x, x, filt.camera)
-                at = filt.config.first_estimate_jacobians.points(x, filt.first_estimates)
-                if at is not None:  # the Jacobian where the filter's option takes it
-                    J = factors.feature_model_at(i, *at, filt.camera)[1]
+                h, J, depth = factors.feature_model_at(i, x, filt.camera)
                 innov = live.meas.uv[cand] - h
                 ok = depth > filt.config.min_depth
             else:

@@ -37,7 +37,6 @@ def rescale(filt: InformationFilter, s: float) -> None:
     i = d * filt.info.vector
     filt.info.set(sp.csc_matrix(I), i)
     filt.x[pos] *= s
-    filt.first_estimates[pos] *= s
     if filt.priors.scale is not None:
         a, b, dist = filt.priors.scale
         filt.priors.scale = (a, b, dist * s)

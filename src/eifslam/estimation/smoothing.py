@@ -355,7 +355,6 @@ def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
     obs0, rel0 = filt.store.all_features(), list(filt.store.relative)
     feats0 = list(filt.store.features)
     x0, I0, i0 = filt.x.copy(), filt.info.matrix().copy(), filt.info.vector.copy()
-    fe0 = filt.first_estimates.copy()
 
     def common() -> float:
         return measurement_cost(filt, feature_chi2, relative_chi2, obs0, rel0)
@@ -394,7 +393,6 @@ def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
         filt.store.features, filt.store.relative = feats0, rel0
         filt.info.set(I0, i0)
         filt.set_estimate(x0)
-        filt.first_estimates[:] = fe0
     elif undone:  # a later round was undone: back to the best one, information at its estimate
         x, filt.store.features, filt.store.relative = best[2]
         filt.set_estimate(x)

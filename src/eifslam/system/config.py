@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Mapping
 
 from ..errors import ConfigError
-from ..estimation.options import WINDOW, Choice, FilterConfig, FirstEstimates, NoiseEstimate, Recovery
+from ..estimation.options import WINDOW, Choice, FilterConfig, NoiseEstimate, Recovery
 from ..frontend import FrontEndConfig
 from ..settings import Flag, Int, OneOf, Real, build_section, check_section, plain, setting
 
@@ -176,9 +176,6 @@ class ExperimentalConfig:
                                  OneOf(Recovery))
     window: int = setting(WINDOW, "incremental recovery: frames without a measurement before a state leaves the "
                              "active window", Int(1))
-    first_estimate_jacobians: FirstEstimates = setting(
-        FirstEstimates.OFF, "Jacobians of new measurements at first estimates: off, features or all",
-        OneOf(FirstEstimates))
     zm_gate_chi2: float | None = setting(9.21, "a Zm whose normalised innovation squared (2 DOF) exceeds this "
                                                "is not fused (null: every Zm)", Real(0.0, 1e9, lo_open=True,
                                                                                     none=True))
@@ -250,10 +247,10 @@ class SlamConfig:
 
     @functools.cached_property
     def filter(self) -> FilterConfig:
-        """The information filter's options: its ``Zm`` gate and linearisation choices from
-        ``experimental``, the estimation layer's defaults otherwise."""
+        """The information filter's options: its ``Zm`` gate from ``experimental``, the
+        estimation layer's defaults otherwise."""
         ex = self.experimental
-        return FilterConfig(gate_chi2=ex.zm_gate_chi2, first_estimate_jacobians=ex.first_estimate_jacobians)
+        return FilterConfig(gate_chi2=ex.zm_gate_chi2)
 
     @property
     def float_descriptors(self) -> bool:
