@@ -107,12 +107,12 @@ def nees_runs():
     Settings: new features need 4 degrees of parallax, and neither gate is used. Measured
     with 50 runs of 10 frames (chi-square interval 5.08 - 7.00; `benchmarks/consistency.py
     --runs 50 --frames 10 --every 10 --set ...`): here 6.22 (filter) and 5.84 (smooth).
-    Not at the system's defaults, where the run is not consistent (docs/estimator.md,
-    Consistency): 9.55 (filter) and 7.44 (smooth) at the defaults (2 degrees, Zm gate 9.21
-    against R alone, ZR/ZT gate 50). The gates test innovations against the
-    measurement noise alone and refuse correct measurements that disagree with the
-    estimate; features triangulated with 2 degrees have poor first estimates, which the
-    filter never relinearises.
+    Not at the system's defaults, where the filter is not consistent (docs/estimator.md,
+    Consistency): 7.57 (filter) and 6.95 (smooth) at the defaults (2 degrees, Zm gate 9.21
+    against R alone, ZR/ZT gate 50). The gates test innovations against the measurement
+    noise alone and refuse correct measurements that disagree with the estimate, and
+    features triangulated with 2 degrees start from poorer estimates, whose measurements
+    online relinearisation reaches only while they are in the window.
     """
     runs, frames = 50, 10
     vals: dict[str, list[float]] = {"filter": [], "smooth": []}
