@@ -303,28 +303,3 @@ def test_restart_forgets_every_state_and_keeps_the_kind_of_recovery(recovery):
         used.incremental.full_solve_flops_per_entry = 2e4
     np.testing.assert_array_equal(run(used), run(InformationFilter(cam, recovery=recovery, window=3)))
 
-
-def test_a_state_dict_with_an_x_first_entry_loads_as_one_without():
-    """``state_dict`` writes no ``x_first``; ``load_state_dict`` does not read the one a
-    session file of an earlier version holds (first estimates): the filter loads as from
-    the same dict without it."""
-    from eifslam.estimation.filter import InformationFilter
-    from eifslam.estimation.measurements import FeatureObservations
-
-    sc = corridor_scene(3, np.random.default_rng(0))
-    f = InformationFilter(sc.camera, recovery="full")
-    pts = np.flatnonzero(sc.visible(0) & sc.visible(1))[:10]
-    for k in range(2):
-        f.add_pose(k, sc.positions[k], sc.quats[k])
-    f.add_features(pts, sc.points[pts])
-    f.fuse_features(FeatureObservations.concatenate([FeatureObservations.make(np.full(len(pts), k), pts,
-                                                                              sc.project(k, pts)) for k in range(2)]))
-    d = f.state_dict()
-    assert "x_first" not in d
-    plain = InformationFilter(sc.camera, recovery="full")
-    plain.load_state_dict(d)
-    with_first = InformationFilter(sc.camera, recovery="full")
-    with_first.load_state_dict({**d, "x_first": d["x"] + 1.0})
-    np.testing.assert_array_equal(with_first.x, plain.x)
-    np.testing.assert_array_equal(with_first.information_vector(), plain.information_vector())
-    assert abs(with_first.information_matrix() - plain.information_matrix()).max() == 0

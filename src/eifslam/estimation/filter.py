@@ -503,8 +503,6 @@ class InformationFilter:
     def load_state_dict(self, d) -> None:
         """Restore :meth:`state_dict` into this (new, empty) filter. The incremental
         recovery's window starts invalid and is rebuilt from ``I`` at the next step.
-        Entries it does not read are ignored, such as the ``x_first`` (first estimates)
-        of session files of earlier versions.
 
         Raises
         ------
