@@ -15,6 +15,7 @@
 * :mod:`.backend`: the :class:`~.backend.Backend` protocol the EIF and the dense EKF satisfy.
 * :mod:`.gauss_newton`: the relinearise-then-solve pass that smoothing, loop correction and the online relinearisation share.
 * :mod:`.smoothing`: relinearise-and-recover (III-E); :mod:`.scale`: scale recovery (V).
+* :mod:`.calibration`: the focal length the smoothed map's ``Zm`` support, tested against the camera's.
 * :mod:`.initialisation`, :mod:`.localisation`: initial guesses of poses and features.
 
 Imports only :mod:`eifslam.geometry` and :mod:`eifslam.errors`; never OpenCV or matplotlib.

@@ -20,6 +20,7 @@ from ..errors import EstimatorError
 from .filter import InformationFilter
 from .gauss_newton import begin_pass, state_scale
 from .measurements import FeatureObservations, RelativePose
+from .calibration import FocalCheck, focal_check
 from .noise import FeatureGate, residual_noise_scale, track_length_noise  # noqa: F401  (re-exported)
 from .options import NoiseEstimate
 from .scale import recover_scale, rescale  # noqa: F401  (re-exported)
@@ -77,6 +78,9 @@ class SmoothingReport:
     noise_groups : list of NoiseGroup
         With the estimate by track length: each group's ``s`` (its features' gate is
         ``feature_chi2 * min(1, s)**2``).
+    focal : FocalCheck or None
+        The focal length the returned estimate's ``Zm`` support, tested against the
+        camera's (:func:`~eifslam.estimation.calibration.focal_check`, at ``noise_scale``).
     """
 
     passes: int = 0
@@ -92,6 +96,7 @@ class SmoothingReport:
     common_costs: list[float] = field(default_factory=list)
     kept: str = "smoothed"
     reason: str = ""
+    focal: FocalCheck | None = None
 
 
 def relinearise(filt: InformationFilter) -> np.ndarray:
@@ -399,6 +404,7 @@ def smooth(filt: InformationFilter, max_passes: int = 5, tol: float = 1e-8,
         filt.relinearise()
     rep.rejected_features = len(obs0) - len(filt.store.all_features())
     filt.invalidate()  # covariances: refactorise the undamped information on demand
+    rep.focal = focal_check(filt, rep.noise_scale)
     return rep
 
 

@@ -153,7 +153,8 @@ def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
                                 common_costs=sm.common_costs,
                                 kept=sm.kept, reason=sm.reason, rejected_features=sm.rejected_features,
                                 rejected_relative=sm.rejected_relative, noise_scale=sm.noise_scale,
-                                noise_groups=[g.to_dict() for g in sm.noise_groups])
+                                noise_groups=[g.to_dict() for g in sm.noise_groups],
+                                focal=None if sm.focal is None else sm.focal.as_dict())
     if slam.bundle_adjustment is not None:
         rep["ba"] = slam.bundle_adjustment.summary()
     if ground_truth is not None:
