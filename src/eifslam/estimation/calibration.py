@@ -62,8 +62,9 @@ def focal_check(filt: "InformationFilter", noise_scale: float = 1.0) -> FocalChe
     """Test the camera's focal length against the stored ``Zm`` at ``filt.x`` (see the
     module); ``noise_scale``: the residuals' pixel noise over the stated one (``s``).
 
-    ``filt``'s information and estimate are left as they are. Returns None when there is nothing to test (no usable ``Zm``, or ``phi`` not
-    constrained once the states are eliminated).
+    ``filt``'s information and estimate are left as they are. Returns None when there is
+    nothing to test (no usable ``Zm``, or ``phi`` not constrained once the states are
+    eliminated).
     """
     obs = filt.store.all_features()
     if len(obs) == 0:
