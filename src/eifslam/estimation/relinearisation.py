@@ -221,8 +221,8 @@ class OnlineRelinearisation:
         self.stats.steps += 1
         if inc is None:
             return 0
-        x = filt.x
-        parts = []
+        x, t2 = filt.x, self.threshold**2
+        done = 0
         for name in ("features", "relative"):
             live = getattr(self, name)
             if live is None or len(live) == 0:
@@ -240,7 +240,6 @@ class OnlineRelinearisation:
             f2 = np.einsum("ni,nij,nj->n", d, live.W, d)
             # on their last step in the window: evaluated whatever their change
             last = ~self._in_window(inc, name, live.idx, less=1)
-            t2 = self.threshold**2
             cand = np.flatnonzero((f2 > t2) | last)
             self.stats.evaluated += len(cand)
             if len(cand) == 0:
@@ -256,9 +255,7 @@ class OnlineRelinearisation:
             e = live.innov[cand] - d[cand] - innov
             err2 = np.einsum("ni,nij,nj->n", e, live.W[cand], e)
             ok &= np.isfinite(err2) & np.all(np.isfinite(J), axis=(1, 2)) & np.all(np.isfinite(innov), axis=1)
-            parts.append((live, cand, np.flatnonzero(ok & ((err2 > t2) | last[cand])), J, innov))
-        done = 0
-        for live, cand, o, J, innov in parts:
+            o = np.flatnonzero(ok & ((err2 > t2) | last[cand]))
             if not len(o):
                 continue
             sel = cand[o]

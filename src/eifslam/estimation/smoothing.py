@@ -17,10 +17,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import EstimatorError
+from .calibration import FocalCheck, focal_check
 from .filter import InformationFilter
 from .gauss_newton import begin_pass, state_scale
 from .measurements import FeatureObservations, RelativePose
-from .calibration import FocalCheck, focal_check
 from .noise import FeatureGate, residual_noise_scale, track_length_noise  # noqa: F401  (re-exported)
 from .options import NoiseEstimate
 from .scale import recover_scale, rescale  # noqa: F401  (re-exported)

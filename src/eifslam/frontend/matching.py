@@ -25,8 +25,8 @@ __all__ = ["DescriptorIndex", "DescriptorMatcher", "ImageMotion", "essential_ran
 #: Neighbours searched in a prebuilt index of all rows to find the nearest free ones.
 FREE_SEARCH = 8
 #: Float descriptors are matched exactly, from the matrix of all their distances (one BLAS
-#: product), while the two sides have at most this many rows each (pairs: its square); a
-#: FLANN k-d forest is built and searched only above it. ``benchmarks/matching.py`` (SIFT
+#: product), while the pairs of free rows number at most this squared (two sides of this
+#: many rows each); a FLANN k-d forest is built and searched only above it. ``benchmarks/matching.py`` (SIFT
 #: on the shared sets, one thread): with every keypoint of two frames free (up to
 #: 2000 x 2000) the exact match costs half to two thirds of FLANN's two searches of
 #: prebuilt indices (14 against 22-26 ms), with half of them free (the older frames'
@@ -35,6 +35,14 @@ FREE_SEARCH = 8
 EXACT_ROWS = 2500
 
 _EMPTY = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+
+
+def _claimed_once(i1: IntArray, i2: IntArray) -> tuple[IntArray, IntArray]:
+    """The matches ``(i1, i2)`` with each train row ``i2`` claimed by its first match only
+    (a train row can be claimed twice without the mutual check), in their order."""
+    _, first = np.unique(i2, return_index=True)
+    first = np.sort(first)
+    return i1[first], i2[first]
 
 #: Median distance of a descriptor to its second-nearest keypoint of a whole frame,
 #: measured with tracked keypoints on a hand-held and a rendered sequence: SIFT (L2, the
@@ -420,10 +428,7 @@ class DescriptorMatcher:
             best[cand] = back[:, 0]
             keep = best[i2] == i1
             i1, i2 = i1[keep], i2[keep]
-        # a train row must not be claimed twice (possible without the mutual check)
-        _, first = np.unique(i2, return_index=True)
-        first = np.sort(first)
-        return i1[first], i2[first]
+        return _claimed_once(i1, i2)
 
     def _exact(self, a: NDArray, b: NDArray, rows_a: IntArray, rows_b: IntArray) -> tuple[IntArray, IntArray]:
         """:meth:`match` of float descriptors ``a (N1, D)`` and ``b (N2, D)`` (N1, N2 >= 2)
@@ -444,9 +449,8 @@ class DescriptorMatcher:
         if self.mutual:
             keep = D[:, i2].argmin(axis=0) == i1  # each column's nearest row
             i1, i2 = i1[keep], i2[keep]
-        _, first = np.unique(i2, return_index=True)  # a column claimed once (without the mutual check)
-        first = np.sort(first)
-        return rows_a[i1[first]], rows_b[i2[first]]
+        i1, i2 = _claimed_once(i1, i2)
+        return rows_a[i1], rows_b[i2]
 
     def _search(self, q: NDArray, t: NDArray, free: NDArray[np.bool_], index: DescriptorIndex | None,
                 k: int) -> tuple[IntArray, Array]:
