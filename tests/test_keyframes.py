@@ -11,7 +11,7 @@ from eifslam.estimation.localisation import map_pose_covariance, map_pose_sensit
 from eifslam.geometry.rotations import quat_exp, quat_multiply, quat_to_rotmat
 from eifslam.sim.frontend import SyntheticFrontEnd
 from eifslam.sim.synthetic import corridor_scene, default_camera
-from eifslam.system.config import SlamConfig
+from eifslam.system.config import KeyframeConfig, SlamConfig
 from eifslam.system.keyframes import MapPose, median_parallax_deg
 from eifslam.system.slam import Slam, TrackingState
 
@@ -151,7 +151,29 @@ def test_keyframe_settings_are_checked():
                 {"keyframes": {"min_tracked": 0.5}}):
         with pytest.raises(ConfigError):
             SlamConfig.from_dict(bad)
-    assert SlamConfig().keyframe_parallax == SlamConfig().mapping.min_feature_parallax_deg / 4
+
+
+def test_keyframe_parallax_grows_with_the_map_features_up_to_the_triangulation_parallax():
+    cfg = SlamConfig()
+    tri, n_ref = cfg.mapping.min_feature_parallax_deg, KeyframeConfig.redundant_features
+    quarter = tri / KeyframeConfig.per_triangulation
+    assert cfg.keyframe_parallax() == cfg.keyframe_parallax(n_ref // 2) == quarter
+    assert cfg.keyframe_parallax(2 * n_ref) == pytest.approx(2 * quarter)
+    assert cfg.keyframe_parallax(100 * n_ref) == pytest.approx(tri)
+    fixed = cfg.replace(experimental={"keyframe_parallax_deg": 1.3})
+    assert fixed.keyframe_parallax(0) == fixed.keyframe_parallax(100 * n_ref) == 1.3
+
+
+def test_a_frame_on_many_map_features_needs_more_parallax():
+    sc, slam = run(keyframes=True, frames=12)
+    kfs = slam.keyframes
+    n = 4 * KeyframeConfig.redundant_features
+    mp = MapPose(99, kfs.last, np.zeros(3), np.array([1.0, 0, 0, 0]), np.eye(6), np.arange(n),
+                 np.zeros((n, 2)), inlier_fraction=1.0, parallax_deg=1.0, tracked_fraction=1.0)
+    t_last = slam.results[kfs.last].timestamp
+    assert kfs.keyframe_reason(mp, t_last + 0.05) is None  # 1 deg: a keyframe on few features
+    mp.parallax_deg = slam.config.mapping.min_feature_parallax_deg
+    assert "parallax" in kfs.keyframe_reason(mp, t_last + 0.05)
 
 
 def test_frames_between_keyframes_follow_their_keyframe_when_the_map_moves():

@@ -101,9 +101,16 @@ class KeyframeConfig:
     #: ... or once it sees fewer than this fraction of the map features the last keyframe
     #: saw (chosen on the first 150 frames of 7scenes-redkitchen-a, checked on the others).
     min_tracked: ClassVar[float] = 0.5
-    #: Keyframes per triangulation parallax: the keyframe parallax is the map feature's
-    #: divided by this, so that a feature is seen from about four keyframes when it is made.
+    #: Keyframes per triangulation parallax: the keyframe parallax is at least the map
+    #: feature's divided by this, so that a feature is seen from about four keyframes when
+    #: it is made.
     per_triangulation: ClassVar[int] = 4
+    #: Map features that fix a frame's pose: a frame localised on more of them needs
+    #: proportionally more parallax to become a keyframe, up to the whole triangulation
+    #: parallax (:meth:`SlamConfig.keyframe_parallax`). Chosen so that the shared real sets
+    #: (30-230 map features per frame) keep their keyframes; checked on the loop world
+    #: (about 800 per frame, where it halves the keyframes).
+    redundant_features: ClassVar[int] = 150
 
     def __post_init__(self) -> None:
         check_section(self, "keyframes")
@@ -273,13 +280,28 @@ class SlamConfig:
             return float(v)
         return 15.0 if self.float_descriptors else 0.0
 
-    @property
-    def keyframe_parallax(self) -> float:
-        """The parallax that makes a keyframe, degrees: ``experimental.keyframe_parallax_deg``
-        or, by default, ``mapping.min_feature_parallax_deg`` divided by
-        :attr:`KeyframeConfig.per_triangulation`."""
+    def keyframe_parallax(self, n_map_features: int = 0) -> float:
+        """The parallax that makes a keyframe of a frame localised on ``n_map_features`` map
+        features, degrees: ``experimental.keyframe_parallax_deg`` when set; by default
+        ``mapping.min_feature_parallax_deg / KeyframeConfig.per_triangulation`` times
+        ``n_map_features / KeyframeConfig.redundant_features``, that factor clipped to
+        ``[1, per_triangulation]``.
+
+        Why it grows with the map features: a frame's pose error comes from its pixel
+        noise and from its features' own error, each divided by about the number of
+        features; a feature's error grows with the spacing of the keyframes that measured
+        it. With many features the map fixes the frame's pose well even from features seen
+        by fewer keyframes, so the keyframes can be spaced in proportion (on the loop world,
+        about 800 map features per frame, every second frame is a keyframe instead of
+        every frame, and its ATE does not change). The spacing never exceeds the
+        triangulation parallax itself, so that a track first seen at one keyframe can be
+        triangulated at the next."""
         v = self.experimental.keyframe_parallax_deg
-        return float(self.mapping.min_feature_parallax_deg / KeyframeConfig.per_triangulation if v is None else v)
+        if v is not None:
+            return float(v)
+        k = KeyframeConfig
+        factor = min(max(n_map_features / k.redundant_features, 1.0), float(k.per_triangulation))
+        return float(self.mapping.min_feature_parallax_deg / k.per_triangulation * factor)
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         """Every setting as plain values (enums as their strings): what :meth:`from_dict`

@@ -9,8 +9,11 @@ features triangulated), when one of these measured quantities says so:
 * that localisation failed or fits the map poorly (inlier fraction below
   ``TrackingConfig.map_inlier_fraction``): the map alone cannot place the frame;
 * the median parallax of the map features it shares with the last keyframe reached
-  ``SlamConfig.keyframe_parallax`` (by default the parallax a new map feature needs, so that
-  tracks first seen at the last keyframe can be triangulated now);
+  :meth:`SlamConfig.keyframe_parallax`: a quarter of the parallax a new map feature needs
+  (a feature is seen from about four keyframes when it is made), more for a frame
+  localised on many map features (its pose is fixed by the map, and the keyframes can be
+  spaced further), at most the whole of it (a track first seen at one keyframe can be
+  triangulated at the next);
 * it sees fewer than ``KeyframeConfig.min_tracked`` of the map features the last keyframe
   saw (the view moves on);
 * ``keyframes.max_interval_s`` seconds passed since the last keyframe.
@@ -253,8 +256,10 @@ class Keyframes:
         cfg = self.config
         if mp.inlier_fraction < cfg.tracking.map_inlier_fraction:
             return f"fits the map poorly ({mp.inlier_fraction:.0%} inliers)"
-        if mp.parallax_deg >= cfg.keyframe_parallax:
-            return f"parallax {mp.parallax_deg:.1f} deg to keyframe {mp.reference}"
+        need = cfg.keyframe_parallax(len(mp.track_ids))
+        if mp.parallax_deg >= need:
+            return (f"parallax {mp.parallax_deg:.1f} deg to keyframe {mp.reference} "
+                    f"({need:.2g} on {len(mp.track_ids)} map features)")
         if mp.tracked_fraction < cfg.keyframes.min_tracked:
             return f"sees {mp.tracked_fraction:.0%} of keyframe {mp.reference}'s map features"
         return self.due(timestamp)
