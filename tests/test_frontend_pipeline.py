@@ -334,3 +334,34 @@ def test_windowed_first_match_finds_what_the_whole_frame_search_finds(shared_dat
         ref = set(zip(i1[inl].tolist(), i2[inl].tolist()))
         assert 1.5 * len(ref) >= len(got) >= 0.9 * len(ref) > 300, (len(got), len(ref))
         assert len(got & ref) >= 0.85 * len(ref), (len(got & ref), len(ref))
+
+
+def test_a_released_frame_keeps_what_reobservation_needs_only(texture):
+    """A frame released (placed between keyframes) keeps its descriptors while in the match
+    window and then only those of its keypoints that are a track's last observation: the
+    guided search finds as many tracks again as when the frame kept everything, and a
+    session saved after it continues the same."""
+    def run(release: bool) -> tuple[FrontEnd, int]:
+        fe = FrontEnd(CAM, FrontEndConfig(match_window=1, max_features=1500))
+        a = _rotated_view(texture, 0.0)
+        fe.add_frame(a, 0)
+        if release:
+            fe.release(0)
+            assert fe.descriptors(0) is not None  # still in the match window
+        fe.add_frame(_rotated_view(_texture(np.random.default_rng(1)), 0.0), 1)  # another scene
+        fe.add_frame(a.copy(), 2)
+        if release:
+            assert fe.descriptors(0) is None
+        ids0, uv0 = fe.map_observations(0)
+        return fe, fe.reobserve(2, ids0, uv0, radius_px=5.0)
+
+    kept, found_kept = run(False)
+    released, found_released = run(True)
+    assert found_released == found_kept > 100
+    back = FrontEnd(CAM, FrontEndConfig(match_window=1, max_features=1500))
+    back.load_state_dict(released.state_dict())
+    assert back.descriptors(0) is None and set(back._last_desc) == set(released._last_desc)
+    rows, d = released._last_desc[0]  # kept when forgotten: every row still a track's last observation
+    rows_b, d_b = back._last_desc[0]  # loaded: those that still are (some were found again in frame 2)
+    assert 0 < len(rows_b) <= len(rows) and np.isin(rows_b, rows).all()
+    assert np.array_equal(d_b, d[np.searchsorted(rows, rows_b)])

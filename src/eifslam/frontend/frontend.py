@@ -98,6 +98,9 @@ class FrontEnd:
         self._index: dict[int, DescriptorIndex] = {}  # the match window's descriptor indices
         self._motion: dict[int, ImageMotion] = {}  # the last frame's keypoints' motion
         self._order: list[int] = []
+        self._released: set[int] = set()  # frames whose descriptors go when they leave the match window
+        self._last_desc: dict[int, tuple[IntArray, NDArray]] = {}  # forgotten frames: (rows, descriptors)
+        # of their keypoints that are a track's last observation (re-observation's reference)
         self._last_frame = np.zeros(0, np.int64)  # per raw track id: last frame seen in
         self._last_kp = np.zeros(0, np.int64)  # ... and the keypoint index there
         self._ahead_last: Features | None = None  # match_ahead's last features (its thread's)
@@ -124,6 +127,8 @@ class FrontEnd:
         self.__dict__.pop("_ahead_previous", None)  # a pickle without the ahead matching's state
         self.__dict__.setdefault("_ahead_last", None)
         self.__dict__.setdefault("_contrast", None)
+        self.__dict__.setdefault("_released", set())
+        self.__dict__.setdefault("_last_desc", {})
         self._contrast_lock = threading.Lock()
         self._local = threading.local()
         self._matcher = self._make_matcher()
@@ -409,8 +414,11 @@ class FrontEnd:
         self._order.append(fid)
         self._index[fid] = index
         self._motion = {} if motion is None else {fid: motion}  # what the next frame's search needs
-        for p in [p for p in self._index if p not in previous[: self.config.match_window - 1] and p != fid]:
+        window = [fid] + previous[: self.config.match_window - 1]  # the next frame's match window
+        for p in [p for p in self._index if p not in window]:
             del self._index[p]  # only the next frame's match window keeps its index
+        for p in [p for p in self._released if p not in window]:
+            self.forget(p)
         if self.config.seed is not None:  # the draws after this frame whichever thread built its index
             cv2.setRNGSeed(int(self.config.seed) + fid)
         t2 = time.perf_counter()
@@ -554,10 +562,34 @@ class FrontEnd:
 
     def forget(self, frame_id: int) -> None:
         """Drop the descriptors of a frame (it can no longer be matched; its keypoints and
-        track ids stay available)."""
-        self._get(frame_id)
-        self._desc.pop(int(frame_id), None)
-        self._index.pop(int(frame_id), None)
+        track ids stay available). Those of its keypoints that are the last observation of
+        a track stay, as the reference :meth:`reobserve` compares with."""
+        fr = self._get(frame_id)
+        fid = int(frame_id)
+        if fid in self._desc:
+            rows = self._last_rows(fid)
+            self._last_desc[fid] = (rows, self._desc[fid][rows].copy())
+        self._desc.pop(fid, None)
+        self._index.pop(fid, None)
+        self._released.discard(fid)
+        fr.feats = replace(fr.feats, descriptors=fr.feats.descriptors[:0])
+
+    def _last_rows(self, frame_id: int) -> IntArray:
+        """Rows of frame ``frame_id``'s keypoints that are the last observation of a track,
+        sorted. Only shrinks as later frames see those tracks again."""
+        return np.unique(self._last_kp[self._last_frame == int(frame_id)])
+
+    def release(self, frame_id: int) -> None:
+        """Frame ``frame_id`` will not be matched again once it leaves the match window
+        (a frame between keyframes: loop closing and relocalisation match keyframes only).
+        Its descriptors are dropped then (:meth:`forget`): SIFT's take 256 KB per frame of
+        2000 keypoints, most of the front end's memory."""
+        fid = int(frame_id)
+        self._get(fid)
+        if fid in self._desc:
+            self._released.add(fid)
+        if fid not in self._order[-self.config.match_window:]:
+            self.forget(fid)
 
     # ------------------------------------------------------------ re-association
     def reobserve(self, frame_id: int, track_ids: IntArray, uv_predicted: Array, radius_px: float,
@@ -600,7 +632,7 @@ class FrontEnd:
             return 0
         ratio = self._matcher.ratio if ratio is None else float(ratio)
         lf, lk = self._last_frame[track_ids], self._last_kp[track_ids]
-        have = (lf >= 0) & (lf != fid) & np.isin(lf, list(self._desc))
+        have = (lf >= 0) & (lf != fid) & np.isin(lf, list(self._desc) + list(self._last_desc))
         track_ids, uv_predicted, lf, lk = track_ids[have], uv_predicted[have], lf[have], lk[have]
         if len(track_ids) == 0:
             return 0
@@ -608,7 +640,11 @@ class FrontEnd:
         D = np.empty((len(lf), frame_desc.shape[1]), frame_desc.dtype)  # each track's, where last seen
         for f in np.unique(lf).tolist():
             rows = lf == f
-            D[rows] = self._desc[f][lk[rows]]
+            if f in self._desc:
+                D[rows] = self._desc[f][lk[rows]]
+            else:
+                kept, d = self._last_desc[f]
+                D[rows] = d[np.searchsorted(kept, lk[rows])]
         rows, best, d1 = guided_search(D, uv_predicted, frame_desc, fr.feats.uv, radius_px, ratio,
                                        lone_candidate_bound(frame_desc, ratio))
         kid = self._tracks.resolve(fr.raw_ids)
@@ -702,7 +738,9 @@ class FrontEnd:
 
         desc = [f.feats.descriptors for f in frames if f.feats.descriptors.size]
         width, dtype = (desc[0].shape[1], np.result_type(*[d.dtype for d in desc])) if desc else (0, np.uint8)
-        D = cat(lambda f: f.feats.descriptors, (width,), dtype)
+        parts = [f.feats.descriptors if len(f.feats.descriptors) else self._forgotten_rows(fid, len(f.feats), width, dtype)
+                 for fid, f in zip(self._order, frames)]
+        D = np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros((0, width), dtype)
         # OpenCV's SIFT descriptors are floats holding integers 0..255: kept as bytes (4x
         # smaller), exactly
         as_bytes = self.config.detector.float_descriptors and (D.dtype == np.uint8 or bool(
@@ -712,6 +750,7 @@ class FrontEnd:
             "order": np.array(self._order, np.int64),
             "n_keypoints": np.array([len(f.feats) for f in frames], np.int64),
             "matchable": np.array([f in self._desc for f in self._order], bool),
+            "released": np.array(sorted(self._released), np.int64),
             "uv": cat(lambda f: f.feats.uv, (2,), float),
             "uv_raw": cat(lambda f: f.feats.uv_raw, (2,), float),
             "descriptors": D.astype(np.uint8) if as_bytes else D,
@@ -731,6 +770,15 @@ class FrontEnd:
                                        for f in sorted(self._motion)], float),  # 0: the whole frame
             "motion_reference": np.array([self._motion[f].reference for f in sorted(self._motion)], np.int64),
         }
+
+    def _forgotten_rows(self, fid: int, n: int, width: int, dtype) -> NDArray:
+        """A forgotten frame's ``n`` descriptors as :meth:`state_dict` writes them: what
+        :meth:`forget` kept in its rows, zeros elsewhere."""
+        out = np.zeros((n, width), dtype)
+        rows, d = self._last_desc.get(fid, (np.zeros(0, np.int64), None))
+        if len(rows):
+            out[rows] = d
+        return out
 
     def load_state_dict(self, d) -> None:
         """Restore :meth:`state_dict` into this (new, empty) front end, checked.
@@ -774,13 +822,21 @@ class FrontEnd:
             raise SessionError("arrays 'last_frame' and 'last_kp' name a keypoint that is not stored")
         ends = np.cumsum(nk)
         for fid, a, b, m in zip(order.tolist(), (ends - nk).tolist(), ends.tolist(), matchable.tolist()):
-            feats = Features(uv[a:b].copy(), uv_raw[a:b].copy(), self._compact(desc[a:b]).copy(), scale[a:b].copy(),
-                             resp[a:b].copy(), sign[a:b].copy(), colors[a:b].copy())
+            feats = Features(uv[a:b].copy(), uv_raw[a:b].copy(), self._compact(desc[a:b] if m else desc[a:a]).copy(),
+                             scale[a:b].copy(), resp[a:b].copy(), sign[a:b].copy(), colors[a:b].copy())
             self._frames[fid] = StoredFrame(feats, raw[a:b].copy())
             if m:
                 self._desc[fid] = feats.descriptors
         self._order = order.tolist()
         self._tracks, self._last_frame, self._last_kp = tracks, last_f.copy(), last_k.copy()
+        for fid, a, m in zip(order.tolist(), (ends - nk).tolist(), matchable.tolist()):
+            rows = np.zeros(0, np.int64) if m else self._last_rows(fid)
+            if len(rows):  # a forgotten frame's reference descriptors
+                self._last_desc[fid] = (rows, self._compact(desc[a + rows]).copy())
+        released = take_ids(d, "released") if "released" in d else np.zeros(0, np.int64)
+        if not np.all(np.isin(released, order[matchable])):
+            raise SessionError("array 'released' names a frame that cannot be matched")
+        self._released = set(released.tolist())
         contrast = take(d, "sift_contrast", np.float64, (None,)) if "sift_contrast" in d else np.zeros(0)
         if len(contrast) > 1 or np.any(contrast <= 0):
             raise SessionError("array 'sift_contrast' must hold at most one positive threshold")

@@ -227,6 +227,10 @@ class SyntheticFrontEnd:
         """Nothing to drop (there are no descriptors)."""
         self.scene_index(frame_id)
 
+    def release(self, frame_id: int) -> None:
+        """Nothing to drop (there are no descriptors)."""
+        self.scene_index(frame_id)
+
     # -- helpers for runs on the scene --------------------------------------------------
     def true_distance(self, i: int = 0, j: int = 1) -> float:
         """Distance between the centres of scene frames *i* and *j*, scene units."""

@@ -56,6 +56,11 @@ class FrontEndProtocol(Protocol):
         """``ZR``/``ZT`` from frame ``i`` to frame ``j`` with their covariance, or why not."""
         ...
 
+    def release(self, frame_id: int) -> None:
+        """A frame placed between keyframes: it need not be matched once it leaves the
+        match window (what it keeps for that may go)."""
+        ...
+
     def relocalise(self, frame_id: int, candidate_frame_ids) -> list[tuple[int, int]]:
         """Match a frame against older ones and merge the matched tracks; returns
         ``(candidate, matches)`` pairs."""

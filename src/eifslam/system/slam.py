@@ -284,6 +284,8 @@ class Slam:
         if res.keyframe and res.position is not None \
                 and self.filter.layout.has_pose(res.frame_id):
             self.keyframes.note_keyframe(res.frame_id, res.timestamp)
+        elif res.position is not None and not self.filter.layout.has_pose(res.frame_id):
+            self.frontend.release(res.frame_id)  # placed between keyframes: never matched again
         if res.position is None and res.state is TrackingState.INITIALISING:
             self._waiting.append(res.frame_id)
         elif res.state is TrackingState.TRACKING and self._waiting and self.filter.layout.n_poses >= 2:
