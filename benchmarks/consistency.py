@@ -7,7 +7,7 @@ through the system (:class:`eifslam.system.slam.Slam`) at its default settings (
 estimate is in the truth's gauge: first pose the identity, distance between the first two
 poses the true one; when the map starts from another pair with the first, the truth is
 scaled to the estimate's scale). After every ``--every``-th frame the normalised estimation error
-squared (NEES) of the latest pose, 6 DOF ``[p, dtheta]``, is taken from the filter's
+squared (NEES) of the latest keyframe (the filter's latest pose), 6 DOF ``[p, dtheta]``, is taken from the filter's
 estimate and covariance; at the same frames a copy of the system is smoothed
 (:meth:`Slam.smooth`) and scored the same way. The latest frame between keyframes since
 the previous checkpoint (its map pose and the covariance :meth:`Slam.track` reports) is
@@ -115,9 +115,9 @@ def parse_sets(items: list[str]) -> dict[str, dict]:
 
 def one_run(seed: int, frames: int, checkpoints: list[int], sections: dict, map_fraction: float,
             step: float = 0.5, fps: float | None = None) -> dict:
-    """One Monte Carlo run: NEES at each checkpoint of the latest pose, filter and
-    smoothed, and of the latest frame between keyframes since the previous checkpoint
-    (its reported map pose and covariance; NaN when there was none)."""
+    """One Monte Carlo run: NEES at each checkpoint of the latest keyframe (the filter's
+    latest pose), filter and smoothed, and of the latest frame between keyframes since the
+    previous checkpoint (its reported map pose and covariance; NaN when there was none)."""
     sc = corridor_scene(frames, np.random.default_rng(seed), step=step)
     fe = SyntheticFrontEnd(sc, seed, map_fraction=map_fraction)
     slam = Slam(sc.camera, fe.slam_config(**sections), frontend=fe)
@@ -134,15 +134,16 @@ def one_run(seed: int, frames: int, checkpoints: list[int], sections: dict, map_
         f = slam.filter
         out["between"].append(between)
         between = np.nan
-        if k not in f.layout.pose_ids or scale is None:
+        latest = max((p for p in f.layout.pose_ids if p <= k), default=None)
+        if latest is None or scale is None:
             out["filter"].append(np.nan)  # lost, or another gauge than the truth's: not scored
             out["smooth"].append(np.nan)
             out["cost_ratio"].append(np.nan)
             continue
-        out["filter"].append(pose_nees(f, sc, k, scale))
+        out["filter"].append(pose_nees(f, sc, latest, scale))
         s = copy.deepcopy(slam) if k < frames - 1 else slam
         costs = s.smooth().common_costs  # at the filter's estimate, then after each round
-        out["smooth"].append(pose_nees(s.filter, sc, k, scale))
+        out["smooth"].append(pose_nees(s.filter, sc, latest, scale))
         out["cost_ratio"].append(costs[0] / min(costs) if min(costs) > 0 else np.nan)
     return out
 
@@ -222,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _plot(res: dict, path: Path) -> None:
-    """Mean NEES of the latest pose against frame, both modes, with the 95% interval."""
+    """Mean NEES of the latest keyframe against frame, both modes, with the 95% interval."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -239,7 +240,7 @@ def _plot(res: dict, path: Path) -> None:
     ax.axhspan(lo, hi, color="0.85", label="95% interval")
     ax.axhline(DOF, color="k", lw=0.8)
     ax.set_yscale("log")
-    ax.set_xlabel("frame (latest pose)")
+    ax.set_xlabel("frame (latest keyframe at or before it)")
     ax.set_ylabel("mean NEES (6 DOF)")
     ax.set_title(f"{res['filter']['runs']} Monte Carlo runs")
     ax.legend()
