@@ -340,7 +340,7 @@ def test_a_released_frame_keeps_what_reobservation_needs_only(texture):
     """A frame released (placed between keyframes) keeps its descriptors while in the match
     window and then only those of its keypoints that are a track's last observation: the
     guided search finds as many tracks again as when the frame kept everything, and a
-    session saved after it continues the same."""
+    front end loaded from its saved state keeps those rows that still are."""
     def run(release: bool) -> tuple[FrontEnd, int]:
         fe = FrontEnd(CAM, FrontEndConfig(match_window=1, max_features=1500))
         a = _rotated_view(texture, 0.0)
