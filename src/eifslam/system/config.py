@@ -198,7 +198,8 @@ class ExperimentalConfig:
               "null: 15 for SIFT, off for binary descriptors)", Real(0.0, 1e4, none=True))
     keyframe_parallax_deg: float | None = setting(
         None, "median parallax to the last keyframe that makes a keyframe, degrees (null: a quarter of "
-              "mapping.min_feature_parallax_deg)", Real(0.0, 90.0, lo_open=True, hi_open=True, none=True))
+              "mapping.min_feature_parallax_deg, more for a frame localised on over 150 map features, at most "
+              "the whole of it)", Real(0.0, 90.0, lo_open=True, hi_open=True, none=True))
     loop_train_frames: int = setting(20, "frames whose descriptors train the place vocabulary", Int(1))
     loop_learn_lag: int = setting(20, "frames the vocabulary's k-means runs in the background before it is "
                                       "joined", Int(0))
