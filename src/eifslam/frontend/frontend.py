@@ -572,7 +572,8 @@ class FrontEnd:
         self._desc.pop(fid, None)
         self._index.pop(fid, None)
         self._released.discard(fid)
-        fr.feats = replace(fr.feats, descriptors=fr.feats.descriptors[:0])
+        d = fr.feats.descriptors
+        fr.feats = replace(fr.feats, descriptors=np.empty((0,) + d.shape[1:], d.dtype))  # not a view: it would keep d
 
     def _last_rows(self, frame_id: int) -> IntArray:
         """Rows of frame ``frame_id``'s keypoints that are the last observation of a track,
