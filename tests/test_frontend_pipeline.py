@@ -358,6 +358,8 @@ def test_a_released_frame_keeps_what_reobservation_needs_only(texture):
     kept, found_kept = run(False)
     released, found_released = run(True)
     assert found_released == found_kept > 100
+    gone = released._frames[0].feats.descriptors
+    assert gone.size == 0 and gone.base is None  # not a view that keeps the frame's descriptors alive
     back = FrontEnd(CAM, FrontEndConfig(match_window=1, max_features=1500))
     back.load_state_dict(released.state_dict())
     assert back.descriptors(0) is None and set(back._last_desc) == set(released._last_desc)
