@@ -33,6 +33,7 @@ import numpy as np
 if TYPE_CHECKING:
     from .filter import InformationFilter
 
+
 @dataclass(frozen=True)
 class FocalCheck:
     """The focal length the ``Zm`` support, relative to the given one.
@@ -72,7 +73,7 @@ def focal_check(filt: "InformationFilter", noise_scale: float = 1.0) -> FocalChe
     # the information at x of exactly the Zm it holds (a feature whose views no longer
     # constrain it keeps its weak prior, and its Zm stay out of b and c too); the filter's
     # own information is put back afterwards
-    I0, i0 = filt.info.matrix().copy(), filt.information_vector().copy()
+    I0, i0 = filt.info.matrix().copy(), filt.information_vector()
     try:
         fused = filt.relinearise()
         if not np.any(fused):

@@ -127,15 +127,14 @@ def removed_loop_rows(slam: Slam) -> list[dict[str, Any]]:
 
 
 def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
-            extra: dict[str, Any] | None = None, information: sp.spmatrix | None = None) -> dict[str, Any]:
-    """The figures of ``report.json`` (``information``: the filter's information matrix,
-    when the caller has it already; it is the largest object of a run)."""
+            extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The figures of ``report.json``."""
     from .metrics import DATASET_UNITS, evaluate
 
     res = slam.results
     n = len(res)
     tracked = sum(r.state is not TrackingState.LOST and r.position is not None for r in res)
-    I = slam.filter.information_matrix() if information is None else information
+    I = slam.filter.information_matrix()
     stages = sorted({k for r in res for k in r.timings_ms})
     rep: dict[str, Any] = dict(
         frames=n, frames_tracked=int(tracked), frames_lost=int(n - tracked),
@@ -191,21 +190,19 @@ def write_outputs(slam: Slam, out_dir: str | Path, total_s: float, ground_truth:
             errors.append(str(exc))
             print(f"eifslam: warning: {exc}", file=sys.stderr)
 
-    def save_npz(path: Path, information: sp.spmatrix) -> None:
-        with atomic_path(path) as tmp:
-            sp.save_npz(tmp, information, compressed=False)  # zlib: 0.2 s of a 51-frame run
+    def save_npz(path: Path) -> None:
+        with atomic_path(path) as tmp:  # CSC as the filter keeps it: a CSR copy would double the peak
+            sp.save_npz(tmp, slam.filter.information_matrix(), compressed=False)  # zlib: 0.2 s of a 51-frame run
 
     t, P, Q = slam.trajectory()  # the estimate first: it is what a user cannot recompute
     save(write_tum, out / "trajectory.tum", t, P, Q)
     _, X, cols = slam.map()
     save(write_ply, out / "map.ply", X, cols)
     save(atomic_write, out / "frames.json", json.dumps({"frames": frame_rows(slam)}, indent=1))
-    information = slam.filter.information_matrix()  # built once: 0.3 GB at the loop world's end
-    save(save_npz, out / "information.npz", information)
+    save(save_npz, out / "information.npz")
     kinds = "".join("f" if k.kind == "feature" else "p" for k in slam.filter.layout.order)
     save(atomic_write, out / "state_layout.json", json.dumps({"kinds": kinds}))  # the blocks of information.npz
-    rep = summary(slam, total_s, ground_truth, extra, information)
-    del information
+    rep = summary(slam, total_s, ground_truth, extra)
     if errors:
         rep["write_errors"] = list(errors)
     save(atomic_write, out / "report.json", json.dumps(rep, indent=2, default=float))

@@ -25,6 +25,7 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass, replace
+from itertools import islice
 
 import cv2
 import numpy as np
@@ -387,7 +388,7 @@ class FrontEnd:
             cv2.setRNGSeed(int(self.config.seed) + fid)  # (OpenCV's generator is per thread: this one's)
         t1 = time.perf_counter()
         ids = np.full(len(feats), -1, np.int64)
-        previous = [p for p in reversed(self._order) if p in self._desc][: self.config.match_window]
+        previous = self._match_window()
         for p in reversed(previous):  # indices not kept (a loaded session): made as when added
             if p not in self._index:
                 self._index[p] = self._seeded_index(self._searchable(self._desc[p]))
@@ -414,7 +415,7 @@ class FrontEnd:
         self._order.append(fid)
         self._index[fid] = index
         self._motion = {} if motion is None else {fid: motion}  # what the next frame's search needs
-        window = [fid] + previous[: self.config.match_window - 1]  # the next frame's match window
+        window = self._match_window()  # the next frame's
         for p in [p for p in self._index if p not in window]:
             del self._index[p]  # only the next frame's match window keeps its index
         for p in [p for p in self._released if p not in window]:
@@ -575,6 +576,11 @@ class FrontEnd:
         d = fr.feats.descriptors
         fr.feats = replace(fr.feats, descriptors=np.empty((0,) + d.shape[1:], d.dtype))  # not a view: it would keep d
 
+    def _match_window(self) -> list[int]:
+        """The frames a new frame is matched against, newest first: the last
+        ``match_window`` stored frames that still have descriptors."""
+        return list(islice((p for p in reversed(self._order) if p in self._desc), self.config.match_window))
+
     def _last_rows(self, frame_id: int) -> IntArray:
         """Rows of frame ``frame_id``'s keypoints that are the last observation of a track,
         sorted. Only shrinks as later frames see those tracks again."""
@@ -589,7 +595,7 @@ class FrontEnd:
         self._get(fid)
         if fid in self._desc:
             self._released.add(fid)
-        if fid not in self._order[-self.config.match_window:]:
+        if fid not in self._match_window():
             self.forget(fid)
 
     # ------------------------------------------------------------ re-association

@@ -44,6 +44,7 @@ def _claimed_once(i1: IntArray, i2: IntArray) -> tuple[IntArray, IntArray]:
     first = np.sort(first)
     return i1[first], i2[first]
 
+
 #: Median distance of a descriptor to its second-nearest keypoint of a whole frame,
 #: measured with tracked keypoints on a hand-held and a rendered sequence: SIFT (L2, the
 #: descriptors' norm is 512) 300 on both; ORB (Hamming) 44 of its 256 bits, scaled here
