@@ -145,6 +145,8 @@ def one_run(seed: int, frames: int, checkpoints: list[int], sections: dict, map_
         costs = s.smooth().common_costs  # at the filter's estimate, then after each round
         out["smooth"].append(pose_nees(s.filter, sc, latest, scale))
         out["cost_ratio"].append(costs[0] / min(costs) if min(costs) > 0 else np.nan)
+    out["zm_gate"] = [slam.filter.zm_gate.offered, slam.filter.zm_gate.refused]
+    out["gate_chi2"] = slam.filter.config.gate_chi2
     return out
 
 
@@ -200,6 +202,11 @@ def main(argv: list[str] | None = None) -> int:
     per_frame["cost_ratio_max"] = [float(np.nanmax(C[:, c])) if np.isfinite(C[:, c]).any() else None
                                    for c in range(C.shape[1])]
     res["per_frame"] = per_frame
+    # the simulation has no wrong matches: every Zm the gate refuses is a false alarm
+    offered, refused = (int(sum(row["zm_gate"][i] for row in rows)) for i in (0, 1))
+    gate = rows[0]["gate_chi2"] if rows else None
+    res["zm_gate"] = dict(offered=offered, refused=refused, rate=refused / offered if offered else None,
+                          test_rate=None if gate is None else float(chi2.sf(gate, 2)))
     res["settings"] = dict(sections=sections, map_fraction=args.map_fraction, step=args.step, fps=args.fps, seed=args.seed,
                            jobs=args.jobs,
                            seconds=round(seconds, 1))
@@ -218,6 +225,10 @@ def main(argv: list[str] | None = None) -> int:
           + " ".join(f"{m} {[None if v is None else round(v, digits.get(m, 2)) for v in per_frame[m]]}"
                      for m in ("filter", "smooth", "between", "cost_ratio", "cost_ratio_max"))
           + f"  ({seconds:.0f} s)")
+    g = res["zm_gate"]
+    if g["rate"] is not None and g["test_rate"] is not None:
+        print(f"Zm gate: refused {g['refused']} of {g['offered']} correct Zm ({100 * g['rate']:.2f}%; "
+              f"the test's false-alarm rate {100 * g['test_rate']:.2f}%)")
     _plot(res, args.out / "consistency.png")
     return 0
 

@@ -60,3 +60,31 @@ def test_relative_gate_statistic_without_pose_uncertainty_is_against_q(corridor_
     A = np.zeros((6, 3 * len(ids)))
     A[0, 0] = 1.0
     assert algorithm1.relative_gate_statistic(f, rp, (np.asarray(ids), A, 1e-4 * np.eye(6))) <= plain + 1e-9
+
+
+def test_zm_gate_count_adds_up(corridor_gates):
+    """The filter counts the ``Zm`` its gate was offered and refused: what it kept are the
+    stored ``Zm`` (no loop fuses ungated ones on the corridor, none wait), and the refused
+    ones are exactly those over the gate at the estimate they were tested at, a few percent
+    at the defaults (each correct, on this simulation) and never all."""
+    _, slam = corridor_gates
+    g, filt = slam.filter.zm_gate, slam.filter
+    assert slam.mapper.deferred == 0 and not slam.loops.closures
+    assert g.offered - g.refused == len(filt.store.all_features())
+    assert 0 < g.refused < 0.5 * g.offered
+    assert g.rate == pytest.approx(g.refused / g.offered)
+
+
+def test_zm_gate_count_survives_a_session(corridor_gates):
+    """A saved and loaded filter keeps its gate count; a malformed one is refused."""
+    from eifslam.errors import SessionError
+    from eifslam.estimation.filter import InformationFilter
+
+    _, slam = corridor_gates
+    d = slam.filter.state_dict()
+    f2 = InformationFilter(slam.filter.camera, slam.filter.config)
+    f2.load_state_dict(d)
+    assert (f2.zm_gate.offered, f2.zm_gate.refused) == (slam.filter.zm_gate.offered, slam.filter.zm_gate.refused)
+    d["zm_gate"] = [1]
+    with pytest.raises(SessionError, match="zm_gate"):
+        InformationFilter(slam.filter.camera, slam.filter.config).load_state_dict(d)

@@ -16,6 +16,8 @@ Priors and pseudo-measurements are stored with the measurements, so smoothing
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
@@ -36,6 +38,25 @@ from .statedict import check_index, sub, take, take_float, take_ids, take_int
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout, pose_tangent_covariance, read_features, read_pose, read_poses  # noqa: F401
 
 Array = NDArray[np.float64]
+
+
+@dataclass
+class GateCount:
+    """How many ``Zm`` the gate (``FilterConfig.gate_chi2``) was offered and refused.
+
+    Offered: those that could be linearised (in front of the camera, finite). On data
+    without wrong matches (a simulation) every refusal is a false alarm, and the rate
+    would be the test's (``1 - chi2.cdf(gate_chi2, 2)``, 1% at 9.21) if the estimate
+    were exact; features whose estimate is off raise it (``docs/estimator.md``,
+    Consistency)."""
+
+    offered: int = 0
+    refused: int = 0
+
+    @property
+    def rate(self) -> float | None:
+        """The fraction refused (None before any was offered)."""
+        return self.refused / self.offered if self.offered else None
 
 
 class InformationFilter:
@@ -73,6 +94,7 @@ class InformationFilter:
         self.priors = PriorStore()
         self._x = np.zeros(64)
         self._factor: SchurFactor | None = None
+        self.zm_gate = GateCount()
         if not isinstance(recovery, RecoveryMode):
             online = None if self.config.relinearise_threshold is None else \
                 OnlineRelinearisation(self.config.relinearise_threshold)
@@ -93,6 +115,7 @@ class InformationFilter:
         self._factor = None
         self.recovery = self.recovery.fresh()
         self.info = self.recovery.information_store()
+        self.zm_gate = GateCount()
 
     @property
     def incremental(self) -> IncrementalRecovery | None:
@@ -277,7 +300,11 @@ class InformationFilter:
         """
         if len(obs) == 0:
             return obs
-        ok, idx, J, W, innov, _ = self.linearise_features(obs, gate)
+        ok, idx, J, W, innov, chi2 = self.linearise_features(obs, gate)
+        if gate and self.config.gate_chi2 is not None:
+            usable = np.isfinite(chi2)
+            self.zm_gate.offered += int(usable.sum())
+            self.zm_gate.refused += int(np.sum(usable & ~ok))
         if not np.all(ok):
             obs, idx, J, W, innov = obs.subset(ok), idx[ok], J[ok], W[ok], innov[ok]
         self._fuse(Linearised(idx, J, W, innov), measurement=recent)
@@ -498,6 +525,7 @@ class InformationFilter:
             "relative": pack_relative(self.store.relative),
             "incremental": self.recovery.state_dict(),
             "online": None if self.recovery.online is None else self.recovery.online.state_dict(),
+            "zm_gate": [self.zm_gate.offered, self.zm_gate.refused],
         }
 
     def load_state_dict(self, d) -> None:
@@ -561,6 +589,10 @@ class InformationFilter:
         self._check_states(StateKind.POSE, np.array([[r.i, r.j] for r in self.store.relative], np.int64), "relative")
         # after info.set, which clears the recovery's bookkeeping
         self.recovery.load_state_dict(d.get("incremental"), None if d.get("online") is None else sub(d, "online"), n)
+        g = d.get("zm_gate", [0, 0])
+        if not (isinstance(g, list) and len(g) == 2):
+            raise SessionError("entry 'zm_gate' must be [offered, refused]")
+        self.zm_gate = GateCount(*(take_int({"zm_gate": v}, "zm_gate", 0) for v in g))
         self._factor = None
 
     # -- uncertainty ------------------------------------------------------------------
@@ -652,4 +684,4 @@ class InformationFilter:
         return self.covariance(self.layout.feature_columns([track_id])[0])
 
 
-__all__ = ["FilterConfig", "InformationFilter", "PriorStore", "Recovery", "POSE_DIM", "FEATURE_DIM"]
+__all__ = ["FilterConfig", "GateCount", "InformationFilter", "PriorStore", "Recovery", "POSE_DIM", "FEATURE_DIM"]

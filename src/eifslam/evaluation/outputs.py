@@ -146,6 +146,7 @@ def summary(slam: Slam, total_s: float, ground_truth: Trajectory | None = None,
         total_seconds=round(total_s, 3), fps=round(n / total_s, 3) if total_s > 0 else None,
         eifslam_version=__version__, config=slam.config.to_dict(), loop_closures=loop_rows(slam),
         loops_refused=refused_loop_rows(slam), loops_removed=removed_loop_rows(slam),
+        zm_gate=dict(offered=slam.filter.zm_gate.offered, refused=slam.filter.zm_gate.refused),
     )
     if slam.smoothing is not None:
         sm = slam.smoothing

@@ -38,6 +38,7 @@ _LABELS = {
     "box_ratio_true": "Box width:length, true", "box_ratio_estimated": "Box width:length, estimated",
     "box_ratio_points": "Map features on the box's top face", "box_ratio_error_percent": "Box ratio error (%)",
     "eifslam_version": "eifslam version", "command": "Command", "source": "Source", "stopped": "Stopped",
+    "zm_gate.offered": "Zm offered to the gate", "zm_gate.refused": "Zm the gate refused",
     "sim3.scale": "Sim(3) scale", "sim3.rotation": "Sim(3) rotation", "sim3.translation": "Sim(3) translation ({u})",
 }
 _STATS = {"rmse": "RMSE", "mean": "mean", "median": "median", "max": "max"}

@@ -372,7 +372,9 @@ def detect_features(
     if colors.shape[1] == 1:
         colors = np.repeat(colors, 3, axis=1)
     return Features(
-        uv=undistort_pixels(uv_raw, camera),
+        # without distortion the two are one array (neither is ever changed in place):
+        # 16 bytes a keypoint of every stored frame
+        uv=undistort_pixels(uv_raw, camera) if camera.has_distortion else uv_raw,
         uv_raw=uv_raw,
         descriptors=desc,
         scale_px=scale,
