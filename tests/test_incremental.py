@@ -262,6 +262,8 @@ def test_sparse_rebuilds_keep_the_features_elimination_and_stay_exact(monkeypatc
         if elim is not None:
             assert inc._elim is elim  # noqa: SLF001  kept, not made afresh
         elim = inc._elim  # noqa: SLF001
+        rebuilt = [c for c in inc.conditionals.slots if c is not None and c.factor is not None]
+        assert all(c.factor.factor.B is elim.B for c in rebuilt)  # the coupling shared, not copied
         f.complete_estimate()
         assert rel_err(f.x, full_solve(f)) < 1e-8
         # the kept sums against a fresh elimination of the same features

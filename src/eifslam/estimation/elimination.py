@@ -142,8 +142,9 @@ class FeatureElimination:
         pos = np.full(len(block_start), -1, np.int64)
         pos[pose_entries] = np.arange(len(pose_entries))
         cols = pos[np.concatenate([mp, pa])]
-        return reduced_onto(I, mp, self.entries(), pa, i, self.Dinv, sp.csr_matrix(self.B[:, pos[mp]]),
-                            self.G[cols][:, cols], self.g[cols])
+        # the factor shares B (every pose column) rather than a copy of the columns of mp
+        return reduced_onto(I, mp, self.entries(), pa, i, self.Dinv, self.B, self.G[cols][:, cols], self.g[cols],
+                            B_cols=pos[mp])
 
     def entries(self) -> IntArray:
         """The eliminated features' state entries ``(3 F,)``, in the order of ``B``'s rows."""

@@ -60,8 +60,15 @@ class SchurFactor:
     pose_idx : (P*7,) int   state indices of the poses, in state order.
     feat_idx : (F*3,) int   state indices of the features, in state order.
     Dinv : (F, 3, 3)        inverses of the feature information blocks.
-    B : csr (F*3, P*7)      ``I_fp``.
+    B : csr (F*3, P*7) or (F*3, N)
+        ``I_fp``; with ``B_cols``, a wider matrix whose columns ``B_cols`` are the poses'
+        (the others are ignored).
     S_factor                factorisation of the reduced pose system.
+    B_cols : (P*7,) int or None
+        Positions of the poses among ``B``'s columns, None when they are all of them. A
+        rebuild's factor shares the coupling kept by
+        :class:`~eifslam.estimation.elimination.FeatureElimination` this way instead of
+        a copy of its columns (on the loop world 10 M non-zeros, 120 MB).
     """
 
     pose_idx: IntArray
@@ -70,6 +77,22 @@ class SchurFactor:
     B: sp.csr_matrix
     S_factor: object
     n: int
+    B_cols: IntArray | None = None
+
+    def B_times(self, xp: Array) -> Array:
+        """``I_fp xp`` for pose values ``xp (P*7,)`` (or ``(P*7, m)``)."""
+        if self.B_cols is None:
+            return np.asarray(self.B @ xp)
+        full = np.zeros((self.B.shape[1],) + np.shape(xp)[1:])
+        full[self.B_cols] = xp
+        return np.asarray(self.B @ full)
+
+    def BT_times(self, v: Array | sp.spmatrix) -> Array | sp.spmatrix:
+        """``I_pf v`` for ``v (F*3,)``, ``(F*3, m)`` or sparse ``(F*3, m)``: shape ``(P*7, ...)``."""
+        out = self.B.T @ v
+        if self.B_cols is None:
+            return out
+        return sp.csr_matrix(out)[self.B_cols] if sp.issparse(out) else out[self.B_cols]
 
     def apply_dinv(self, v: Array) -> Array:
         """Apply the block-diagonal ``I_ff^-1`` to ``(F*3,)`` or ``(F*3, m)``."""
@@ -80,9 +103,9 @@ class SchurFactor:
         b = np.asarray(b, dtype=float)
         bp, bf = b[self.pose_idx], b[self.feat_idx]
         Dbf = self.apply_dinv(bf)
-        rhs = bp - self.B.T @ Dbf
+        rhs = bp - self.BT_times(Dbf)
         xp = self.S_factor.solve(rhs) if len(self.pose_idx) else rhs
-        xf = Dbf - self.apply_dinv(np.asarray(self.B @ xp))
+        xf = Dbf - self.apply_dinv(self.B_times(xp))
         x = np.zeros_like(b)
         x[self.pose_idx] = xp
         x[self.feat_idx] = xf
@@ -111,8 +134,8 @@ class SchurFactor:
         Dsp = block_diagonal_csr(self.Dinv)
         DCf = sp.csr_matrix(Dsp @ Cf)
         Dbf = self.apply_dinv(np.asarray(b, float)[self.feat_idx])
-        Rt = (sp.csr_matrix(Cp.T) - sp.csr_matrix(DCf.T) @ self.B).toarray()  # (k, 7P)
-        rb = np.asarray(b, float)[self.pose_idx] - self.B.T @ Dbf
+        Rt = (sp.csr_matrix(Cp.T) - sp.csr_matrix(self.BT_times(DCf)).T).toarray()  # (k, 7P)
+        rb = np.asarray(b, float)[self.pose_idx] - self.BT_times(Dbf)
         if len(self.pose_idx):
             Y = self.S_factor.solve(np.ascontiguousarray(np.column_stack([Rt.T, rb])))
         else:
@@ -185,7 +208,8 @@ class SparseSolve:
         self._frow = (3 * inv + fpos[ent][self._rf] % 3).astype(np.int64)  # into the touched blocks' rows
         self._fent = (3 * feats[:, None] + np.arange(3)).ravel()  # their rows of B
         self._Dinv_c = f.Dinv[feats]
-        self._Bc_T = sp.csr_matrix(f.B[self._fent].T) if len(feats) else None
+        Bc = f.B[self._fent]
+        self._Bc_T = sp.csr_matrix((Bc if f.B_cols is None else Bc[:, f.B_cols]).T) if len(feats) else None
 
     def solve(self, r: Array) -> Array:
         """``A^-1 r``: ``r (k,)`` the right side at ``rows``; the solution on every entry
@@ -200,7 +224,7 @@ class SparseSolve:
             Dbc = apply_blocks(self._Dinv_c, bc)
             rhs -= self._Bc_T @ Dbc
         xp = f.S_factor.solve(rhs) if len(f.pose_idx) else rhs
-        xf = -f.apply_dinv(np.asarray(f.B @ xp))
+        xf = -f.apply_dinv(f.B_times(xp))
         if len(Dbc):
             xf[self._fent] += Dbc
         out = np.empty(len(self._out_p))
@@ -324,7 +348,8 @@ def factorize_onto(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray, keep:
 
 
 def reduced_onto(I: sp.csr_matrix | SummedRows, pose_idx: IntArray, feat_idx: IntArray, keep: IntArray, i: Array,
-                 Dinv: Array, B: sp.csr_matrix, G: sp.spmatrix, g: Array) -> tuple[SchurFactor, Array, Array]:
+                 Dinv: Array, B: sp.csr_matrix, G: sp.spmatrix, g: Array,
+                 B_cols: IntArray | None = None) -> tuple[SchurFactor, Array, Array]:
     """:func:`factorize_onto` from the features' elimination made already (e.g. kept between
     rebuilds, :class:`~eifslam.estimation.elimination.FeatureElimination`).
 
@@ -334,12 +359,15 @@ def reduced_onto(I: sp.csr_matrix | SummedRows, pose_idx: IntArray, feat_idx: In
         :class:`~eifslam.estimation.information.SummedRows` (only rows are read).
     Dinv : (F, 3, 3)
         Inverses of the information blocks of the features ``feat_idx`` (their order).
-    B : CSR (3 F, len(pose_idx))
+    B : CSR (3 F, len(pose_idx)), or (3 F, N) with ``B_cols``
         Their coupling to the poses ``pose_idx``.
     G : sparse (len(ps), len(ps)), ``ps = [pose_idx, keep]``
         ``B_ps^T D^-1 B_ps`` with ``B_ps`` their coupling to the poses ``ps``.
     g : (len(ps),)
         ``B_ps^T D^-1 i_f``.
+    B_cols : (len(pose_idx),) int, optional
+        Positions of ``pose_idx`` among ``B``'s columns when ``B`` is wider (shared by the
+        factor, not copied: :attr:`SchurFactor.B_cols`).
 
     Returns
     -------
@@ -353,10 +381,11 @@ def reduced_onto(I: sp.csr_matrix | SummedRows, pose_idx: IntArray, feat_idx: In
     T = 0.5 * (T + T.T)
     r = i[ps] - np.asarray(g).ravel()
     if nm == 0:  # only features eliminated: the reduced matrix is the marginal
-        factor = SchurFactor(pose_idx, np.asarray(feat_idx, np.int64), Dinv, sp.csr_matrix(B), None, I.shape[0])
+        factor = SchurFactor(pose_idx, np.asarray(feat_idx, np.int64), Dinv, B, None, I.shape[0],
+                             B_cols)
         return factor, T.toarray(), r
     factor = SchurFactor(pose_idx, np.asarray(feat_idx, np.int64), Dinv, B, sparse_cholesky(T[:nm][:, :nm]),
-                         I.shape[0])
+                         I.shape[0], B_cols)
     b = r[nm:] - sp.csr_matrix(T[nm:][:, :nm]) @ factor.S_factor.solve(r[:nm])
     order = np.concatenate([np.argsort(factor.S_factor.perm_c), nm + np.arange(k)])
     ident = np.arange(nm + k)
