@@ -112,3 +112,33 @@ def test_local_map_is_the_features_measured_in_the_last_steps(recovery):
             np.testing.assert_array_equal(got, ids)
     if recovery == "incremental":
         assert 0 < len(f.local_map(1)[0]) < len(f.local_map(1000)[0]) == len(ids)
+
+
+def test_recent_solution_reads_of_a_rebuild_only_the_recently_measured_states():
+    """A sparse rebuild's conditional holds every state that was old at the rebuild: a
+    recent back substitution recovers exactly those of them measured in the last
+    ``slots / 2`` steps and leaves the rest as they are."""
+    from eifslam.estimation.smoothing import smooth
+
+    sc, m = scene(20, 5)
+    f = run_slam(sc, m, InformationFilter(sc.camera, recovery="incremental", window=1))
+    inc = f.incremental
+    inc.undoable_rebuild_pose_entries = 0  # the rebuild is one sparse factorisation
+    inc.rebuild_horizon = 1  # of everything but the states just measured
+    smooth(f, max_passes=1)  # I replaced: the next step rebuilds
+    _old_image_again(f, m, 12)  # an old frame measured again: its states join the window
+    f.recover_active()
+    rebuilt = [c for c in inc.conditionals.slots if c is not None and c.factor is not None]
+    assert len(rebuilt) == 1 and len(rebuilt[0].cidx)  # conditioned on the window
+    exact = f.x.copy()
+    inc.full_solution(exact)
+    assert rel_err(exact, full_solve(f)) < 1e-8
+    slots = 8
+    got = inc.recent_solution(np.full(f.dim, 123.0), slots)
+    last = inc._last[inc._map.start]  # noqa: SLF001  the step each entry was last measured
+    in_rebuild = np.zeros(f.dim, bool)
+    in_rebuild[rebuilt[0].idx] = True
+    wanted = in_rebuild & (last > inc.stats.steps - slots // 2)
+    assert wanted.sum() > 0 and (in_rebuild & ~wanted).sum() > 0
+    np.testing.assert_allclose(got[wanted], exact[wanted], rtol=1e-9, atol=1e-9)
+    assert np.all(got[in_rebuild & ~wanted] == 123.0)

@@ -69,32 +69,38 @@ class Conditional:
 
     _affine: tuple | None = field(default=None, repr=False, compare=False)
 
-    def apply(self, x: Array) -> None:
+    def apply(self, x: Array, at: IntArray | None = None) -> None:
         """``x[idx] = solve(b - C x[cidx])`` in place; a pose batch as ``k - K x[cidx]``
         with ``k = A^-1 b``, ``K = A^-1 C`` solved once (a conditional is never changed:
         undoing one replaces it), one product a back-substitution; a rebuild as
         ``k - A^-1 (C x[cidx])`` with ``k`` solved once and the second solve reading only
-        the rows ``C`` couples."""
+        the rows ``C`` couples, and, given positions ``at`` of ``idx``, writing only
+        ``x[idx[at]]`` (exact for those: every other kind writes all of ``idx``)."""
         if self.chol is not None:
             if self._affine is None:
                 self._affine = (cho_solve(self.chol, self.b), cho_solve(self.chol, self.C))
             k, K = self._affine
             x[self.idx] = k - K @ x[self.cidx] if len(self.cidx) else k
             return
-        if self.factor is not None and len(self.cidx):
+        if self.factor is not None:
             # a rebuild: x = A^-1 b - A^-1 (C x_sep), the first solved once, the second
             # from the few rows C couples (recovery.SparseSolve), at every back substitution
             if self._affine is None:
-                rows = np.flatnonzero(np.diff(self.C.indptr))
-                self._affine = (self.factor.solve(self.b), self.factor.sparse(rows), sp.csr_matrix(self.C[rows]))
+                k = self.factor.solve(self.b)
+                rows = np.flatnonzero(np.diff(self.C.indptr)) if len(self.cidx) else None
+                self._affine = (k, None, None) if rows is None else \
+                    (k, self.factor.sparse(rows), sp.csr_matrix(self.C[rows]))
             k, sparse, Cr = self._affine
-            x[self.idx] = k - sparse.solve(np.asarray(Cr @ x[self.cidx]).ravel())
+            out = self.idx if at is None else self.idx[at]
+            if sparse is None:
+                x[out] = k if at is None else k[at]
+            elif at is None:
+                x[out] = k - sparse.solve(np.asarray(Cr @ x[self.cidx]).ravel())
+            else:
+                x[out] = k[at] - sparse.solve(np.asarray(Cr @ x[self.cidx]).ravel(), at)
             return
         r = self.b - self.C @ x[self.cidx] if len(self.cidx) else self.b.copy()
-        if self.Dinv is not None:
-            x[self.idx] = apply_blocks(self.Dinv, r)
-        else:
-            x[self.idx] = self.factor.solve(r)
+        x[self.idx] = apply_blocks(self.Dinv, r)
 
 
 
@@ -145,7 +151,8 @@ class BackSubstitution:
     def clear(self) -> None:
         self._chunks.clear()
 
-    def apply(self, conds: list[Conditional | None], x: Array, start: int = 0) -> Array:
+    def apply(self, conds: list[Conditional | None], x: Array, start: int = 0,
+              wanted: NDArray[np.bool_] | None = None) -> Array:
         """Recover every eliminated state of ``conds[start:]`` (elimination order; ``None``
         for an undone slot) into ``x`` (in place), whose active entries hold the window's
         solution. Returns ``x``.
@@ -153,7 +160,9 @@ class BackSubstitution:
         The separator of a conditional holds only states that were active when it was
         made, i.e. active now or eliminated later; so the states of the slots from
         ``start`` on are recovered exactly whatever ``start`` is, and the older ones keep
-        the values ``x`` has."""
+        the values ``x`` has. With ``wanted`` (a flag per state entry), a rebuild's
+        conditional, which holds every state that was old at the rebuild, recovers only
+        the wanted ones among them (no later conditional's separator holds its states)."""
         features: dict[int, list[int]] = {}
         for s in range(len(conds) - 1, max(int(start), 0) - 1, -1):
             c = conds[s]
@@ -161,6 +170,10 @@ class BackSubstitution:
                 continue
             if c.Dinv is not None and sp.issparse(c.C):
                 features.setdefault(s // CHUNK, []).append(s)
+            elif wanted is not None and c.factor is not None:
+                at = np.flatnonzero(wanted[c.idx])
+                if len(at):
+                    c.apply(x, at)
             else:  # poses and rebuilds newest first; a dense feature batch needs no merging
                 c.apply(x)
         for chunk, slots in features.items():
@@ -231,7 +244,8 @@ class Conditionals:
         """Entries ``idx`` are no longer eliminated."""
         self.owner[idx] = -1
 
-    def back_substitute(self, x: Array, start: int = 0) -> Array:
+    def back_substitute(self, x: Array, start: int = 0, wanted: NDArray[np.bool_] | None = None) -> Array:
         """Recover the states of the slots from ``start`` on into ``x`` (in place), whose
-        active entries hold the window's solution (:meth:`BackSubstitution.apply`)."""
-        return self.backsub.apply(self.slots, x, start=start)
+        active entries hold the window's solution (:meth:`BackSubstitution.apply`; a
+        rebuild's only where ``wanted``)."""
+        return self.backsub.apply(self.slots, x, start=start, wanted=wanted)

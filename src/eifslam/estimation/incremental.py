@@ -465,12 +465,17 @@ class IncrementalRecovery:
     def recent_solution(self, x: Array, slots: int) -> Array:
         """:meth:`full_solution` for the states of the last ``slots`` conditionals only
         (about two a step: one feature batch, one pose batch), exact for those; older
-        marginalised states keep the values ``x`` has. The cost is bounded by ``slots``,
-        not by the size of the state."""
+        marginalised states keep the values ``x`` has. A rebuild among those slots holds
+        every state that was old then: of those, only the ones measured in the last
+        ``slots / 2`` steps are recovered (what the other slots cover in a run without
+        rebuilds), reading only their rows of the rebuild's coupling. The cost is bounded
+        by ``slots``, not by the size of the state."""
         if not self.window.solved:
             return x
         self.window.write_solution(x)
-        return self.conditionals.back_substitute(x, start=len(self.conditionals) - int(slots))
+        n = len(self._last)
+        wanted = self._last[self._map.start[:n]] > self.stats.steps - max(int(slots) // 2, 1)
+        return self.conditionals.back_substitute(x, start=len(self.conditionals) - int(slots), wanted=wanted)
 
     def pose_covariance(self, cols: IntArray) -> Array | None:
         """Marginal covariance of active pose entries ``cols`` (k,) from the window as last

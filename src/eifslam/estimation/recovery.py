@@ -87,6 +87,15 @@ class SchurFactor:
         full[self.B_cols] = xp
         return np.asarray(self.B @ full)
 
+    def B_rows_times(self, rows: IntArray, xp: Array) -> Array:
+        """Rows ``rows`` of ``I_fp xp`` (reading only those rows of ``B``)."""
+        Br = self.B[rows]
+        if self.B_cols is None:
+            return np.asarray(Br @ xp)
+        full = np.zeros(self.B.shape[1])
+        full[self.B_cols] = xp
+        return np.asarray(Br @ full)
+
     def BT_times(self, v: Array | sp.spmatrix) -> Array | sp.spmatrix:
         """``I_pf v`` for ``v (F*3,)``, ``(F*3, m)`` or sparse ``(F*3, m)``: shape ``(P*7, ...)``."""
         out = self.B.T @ v
@@ -211,9 +220,11 @@ class SparseSolve:
         Bc = f.B[self._fent]
         self._Bc_T = sp.csr_matrix((Bc if f.B_cols is None else Bc[:, f.B_cols]).T) if len(feats) else None
 
-    def solve(self, r: Array) -> Array:
+    def solve(self, r: Array, at: IntArray | None = None) -> Array:
         """``A^-1 r``: ``r (k,)`` the right side at ``rows``; the solution on every entry
-        of the restricted solve (its ``idx`` order)."""
+        of the restricted solve (its ``idx`` order), or on its positions ``at`` only: then
+        only the rows of ``B`` of the features there are read (the pose system is solved
+        whole either way)."""
         f = self.factor
         rhs = np.zeros(len(f.pose_idx))
         rhs[self._ppos] = r[self._rp]
@@ -224,13 +235,20 @@ class SparseSolve:
             Dbc = apply_blocks(self._Dinv_c, bc)
             rhs -= self._Bc_T @ Dbc
         xp = f.S_factor.solve(rhs) if len(f.pose_idx) else rhs
-        xf = -f.apply_dinv(f.B_times(xp))
+        out_p, out_f = (self._out_p, self._out_f) if at is None else (self._out_p[at], self._out_f[at])
+        isp = out_p >= 0
+        if at is None:
+            xf = -f.apply_dinv(f.B_times(xp))
+        else:  # the feature rows asked for; the others are left at zero and not read
+            blocks = np.unique(out_f[~isp] // 3)
+            rows = (3 * blocks[:, None] + np.arange(3)).ravel()
+            xf = np.zeros(len(f.feat_idx))
+            xf[rows] = -apply_blocks(f.Dinv[blocks], f.B_rows_times(rows, xp))
         if len(Dbc):
             xf[self._fent] += Dbc
-        out = np.empty(len(self._out_p))
-        isp = self._out_p >= 0
-        out[isp] = xp[self._out_p[isp]]
-        out[~isp] = xf[self._out_f[~isp]]
+        out = np.empty(len(out_p))
+        out[isp] = xp[out_p[isp]]
+        out[~isp] = xf[out_f[~isp]]
         return out
 
 
