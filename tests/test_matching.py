@@ -137,6 +137,11 @@ def test_binary_search_is_the_brute_force_matcher():
     np.testing.assert_array_equal(dist, [[m.distance for m in r] for r in ref])
     # equal distances may come in either order: the nearest distance is what must agree
     assert np.mean(idx[:, 0] == [r[0].trainIdx for r in ref]) > 0.95
+    # AKAZE's 61-byte descriptors: the same Hamming distances as OpenCV's
+    a1, a2 = rng.integers(0, 256, (200, 61), dtype=np.uint8), rng.integers(0, 256, (300, 61), dtype=np.uint8)
+    _, ad = DescriptorIndex(a2).knn(a1, 2)
+    ref_d, _ = cv2.batchDistance(a1, a2, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
+    np.testing.assert_array_equal(ad, ref_d)
     # fewer rows than asked for: -1 and inf
     few, fd = DescriptorIndex(d2[:1]).knn(d1[:3], 2)
     assert (few[:, 1] == -1).all() and np.isinf(fd[:, 1]).all() and (few[:, 0] == 0).all()
