@@ -50,6 +50,28 @@ def test_feature_model_jacobian(seed):
     assert rel_err(J, numeric_jacobian(f, x0)) < RTOL
 
 
+@pytest.mark.parametrize("seed", range(5))
+def test_feature_model_of_one_pose_is_the_feature_model(seed):
+    """Many points from one (non-unit) pose: the same predictions, depths and Jacobians
+    as the element-wise model, and a Jacobian that finite differences confirm."""
+    rng = np.random.default_rng(seed)
+    q = random_quat(rng, scale=rng.uniform(0.7, 1.3))
+    p = rng.normal(size=3)
+    X = p + (quat_to_rotmat(q) @ np.column_stack([rng.normal(size=40), rng.normal(size=40),
+                                                    rng.uniform(0.5, 5, 40)]).T).T
+    K = (500.0, 480.0, 320.0, 240.0)
+    one = models.feature_model_one_pose(p, q, X, *K)
+    each = models.feature_model(np.tile(p, (40, 1)), np.tile(q, (40, 1)), X, *K)
+    for a, b in zip(one, each):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * max(1.0, float(np.abs(b).max())))
+
+    def f(v):
+        return models.feature_model_one_pose(v[:3], v[3:7], v[None, 7:], *K)[0][0]
+
+    J = np.concatenate([one[1][7], one[2][7]], 1)
+    assert rel_err(J, numeric_jacobian(f, np.concatenate([p, q, X[7]]))) < RTOL
+
+
 def test_feature_model_prediction_matches_pinhole():
     rng = np.random.default_rng(1)
     q = quat_normalize(random_quat(rng))

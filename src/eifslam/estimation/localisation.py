@@ -74,9 +74,7 @@ def localise_pose(
     c = camera
     cov = _LazyCovariances(X_cov, len(X))
     for _ in range(iterations):
-        N = len(X)
-        h, Jp, Jf, z = models.feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X,
-                                            c.fx, c.fy, c.cx, c.cy)
+        h, Jp, Jf, z = models.feature_model_one_pose(p, q, X, c.fx, c.fy, c.cx, c.cy)
         r = uv - h
         e = np.linalg.norm(r, axis=1)
         front = z > 0
@@ -100,8 +98,7 @@ def localise_pose(
         p, q = p + d[:3], quat_normalize(q + d[3:])
         if float(b @ d) < tol_px2:
             break
-    N = len(X)
-    h, _, _, z = models.feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X, c.fx, c.fy, c.cx, c.cy)
+    h, _, _, z = models.feature_model_one_pose(p, q, X, c.fx, c.fy, c.cx, c.cy)
     inl = (z > 0) & (np.linalg.norm(uv - h, axis=1) < inlier_px)
     if inl.sum() < min_inliers:
         return None
@@ -160,8 +157,7 @@ def map_pose_sensitivity(camera: PinholeCamera, p: Array, q: Array, X: Array, si
     if N < 3:
         return None
     c = camera
-    _, Jp, Jf, z = models.feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X,
-                                        c.fx, c.fy, c.cx, c.cy)
+    _, Jp, Jf, z = models.feature_model_one_pose(p, q, X, c.fx, c.fy, c.cx, c.cy)
     front = z > 0
     E = np.zeros((7, 6))  # [dp, dtheta] -> [dp, dq], dq = q ⊗ [0, dtheta / 2]
     E[:3, :3] = np.eye(3)

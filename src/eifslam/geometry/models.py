@@ -9,6 +9,7 @@ quaternion's norm; the norm itself is fixed by a pseudo-measurement
 Models
 ------
 ``feature_model``      ``Zm`` (paper eqs. 2-3): pixel of a world point.
+``feature_model_one_pose``  the same for many points seen from one pose (localisation).
 ``rotation_model``     ``ZR`` (paper eq. 4) as a 3-vector error ``2 vec(ZR^* ⊗ q_i^* ⊗ q_j)``
                        (zero at the measurement, equal to ``dtheta`` to first order), so the
                        rank-3 rotation uncertainty has a full-rank 3x3 covariance.
@@ -119,6 +120,39 @@ def feature_model(
     Xc, Jqn = _rotate_inverse_unit(qn, d)
     J_q = Jqn @ Jn
     Rt = np.swapaxes(unit_quat_to_rotmat(qn[:, 0], qn[:, 1:]), -1, -2)  # R_cw, (N, 3, 3)
+    x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+    zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
+    h = np.stack([fx * x / zs + cx, fy * y / zs + cy], -1)
+    P = np.zeros((len(z), 2, 3))
+    P[:, 0, 0] = fx / zs
+    P[:, 0, 2] = -fx * x / zs**2
+    P[:, 1, 1] = fy / zs
+    P[:, 1, 2] = -fy * y / zs**2
+    J_feat = P @ Rt
+    J_pose = np.concatenate([-J_feat, P @ J_q], axis=2)
+    return h, J_pose, J_feat, z
+
+
+def feature_model_one_pose(
+    p: Array, q: Array, X: Array, fx: float, fy: float, cx: float, cy: float
+) -> tuple[Array, Array, Array, Array]:
+    """:func:`feature_model` of the points ``X (N, 3)`` from one pose ``p (3,)``, ``q (4,)``:
+    the same values up to rounding, for a fraction of the cost. ``R(q)ᵀ d`` is linear in
+    ``d``, so its quaternion Jacobian is ``Σ_k d_k M_k`` with ``M_k (3, 4)`` that of the
+    axis ``e_k``, computed once, rather than element by element.
+
+    Returns
+    -------
+    h, J_pose, J_feat, depth : as :func:`feature_model`, ``(N, 2)``, ``(N, 2, 7)``,
+        ``(N, 2, 3)``, ``(N,)``.
+    """
+    X = np.asarray(X, float).reshape(-1, 3)
+    q3 = np.broadcast_to(np.asarray(q, float).reshape(1, 4), (3, 4))
+    axes, M = rotate_inverse_with_jacobian(q3, np.eye(3))  # R^T e_k (rows: k) and d(R^T e_k)/dq
+    Rt = axes.T  # R_cw: column k is R^T e_k
+    d = X - np.asarray(p, float).reshape(1, 3)
+    Xc = d @ Rt.T
+    J_q = np.einsum("nk,kij->nij", d, M)
     x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
     zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
     h = np.stack([fx * x / zs + cx, fy * y / zs + cy], -1)

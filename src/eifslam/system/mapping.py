@@ -61,11 +61,14 @@ def project(camera: PinholeCamera, p: Array, q: Array, X: Array) -> tuple[Array,
     h : (N, 2) pixels.
     z : (N,) depths.
     """
-    from ..geometry.models import feature_model
+    from ..geometry.models import feature_model, feature_model_one_pose
 
-    N = len(X)
-    h, _, _, z = feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X,
-                               camera.fx, camera.fy, camera.cx, camera.cy)
+    c = camera
+    if np.ndim(p) == 1 and np.ndim(q) == 1:
+        h, _, _, z = feature_model_one_pose(p, q, X, c.fx, c.fy, c.cx, c.cy)
+    else:
+        N = len(X)
+        h, _, _, z = feature_model(np.broadcast_to(p, (N, 3)), np.broadcast_to(q, (N, 4)), X, c.fx, c.fy, c.cx, c.cy)
     return h, z
 
 
