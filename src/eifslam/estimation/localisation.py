@@ -85,8 +85,9 @@ def localise_pose(
             S = np.einsum("nij,njk,nlk->nil", Jf[far], cov.get(far), Jf[far])
             keep[far] = e[far] <= np.sqrt(_CHI2_2_999 * np.maximum(np.linalg.eigvalsh(S)[:, 1], 0.0))
         w = np.where(e <= huber_px, 1.0, huber_px / np.maximum(e, 1e-12)) * front * keep
-        A = np.einsum("n,nij,nik->jk", w, Jp, Jp)
-        b = np.einsum("n,nij,ni->j", w, Jp, r)
+        Jw = (Jp * w[:, None, None]).reshape(-1, 7)
+        A = Jw.T @ Jp.reshape(-1, 7)
+        b = Jw.T @ r.ravel()
         A[3:, 3:] += 1e6 * np.outer(q, q)  # fix the quaternion's norm direction
         A += 1e-9 * np.trace(A) * np.eye(7)
         try:
@@ -164,7 +165,8 @@ def map_pose_sensitivity(camera: PinholeCamera, p: Array, q: Array, X: Array, si
     E[3:, 3:] = 0.5 * quat_left_matrix(q)[:, 1:]
     J = Jp[front] @ E
     try:
-        C = np.linalg.inv(np.einsum("nij,nik->jk", J, J) / sigma_px**2)
+        J2 = J.reshape(-1, 6)
+        C = np.linalg.inv(J2.T @ J2 / sigma_px**2)
     except np.linalg.LinAlgError:
         return None
     if not np.all(np.isfinite(C)) or np.min(np.linalg.eigvalsh(0.5 * (C + C.T))) <= 0:

@@ -152,7 +152,7 @@ def feature_model_one_pose(
     Rt = axes.T  # R_cw: column k is R^T e_k
     d = X - np.asarray(p, float).reshape(1, 3)
     Xc = d @ Rt.T
-    J_q = np.einsum("nk,kij->nij", d, M)
+    J_q = (d @ M.reshape(3, 12)).reshape(-1, 3, 4)  # sum_k d_k M_k
     x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
     zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
     h = np.stack([fx * x / zs + cx, fy * y / zs + cy], -1)
