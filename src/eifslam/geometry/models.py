@@ -96,6 +96,24 @@ def _cross(a: Array, b: Array) -> Array:
     return out
 
 
+def _zm(Xc: Array, Rt: Array, J_q: Array, fx: float, fy: float, cx: float, cy: float
+        ) -> tuple[Array, Array, Array, Array]:
+    """:func:`feature_model`'s outputs from the camera-frame points ``Xc (N, 3)``,
+    ``R_cw`` (``(3, 3)`` or ``(N, 3, 3)``) and ``d Xc / dq`` ``(N, 3, 4)`` (a depth within
+    1e-12 of zero taken as 1e-12 in the projection)."""
+    x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+    zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
+    h = np.stack([fx * x / zs + cx, fy * y / zs + cy], -1)
+    P = np.zeros((len(z), 2, 3))
+    P[:, 0, 0] = fx / zs
+    P[:, 0, 2] = -fx * x / zs**2
+    P[:, 1, 1] = fy / zs
+    P[:, 1, 2] = -fy * y / zs**2
+    J_feat = P @ Rt
+    J_pose = np.concatenate([-J_feat, P @ J_q], axis=2)
+    return h, J_pose, J_feat, z
+
+
 def feature_model(
     p: Array, q: Array, X: Array, fx: float, fy: float, cx: float, cy: float
 ) -> tuple[Array, Array, Array, Array]:
@@ -120,17 +138,7 @@ def feature_model(
     Xc, Jqn = _rotate_inverse_unit(qn, d)
     J_q = Jqn @ Jn
     Rt = np.swapaxes(unit_quat_to_rotmat(qn[:, 0], qn[:, 1:]), -1, -2)  # R_cw, (N, 3, 3)
-    x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
-    zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
-    h = np.stack([fx * x / zs + cx, fy * y / zs + cy], -1)
-    P = np.zeros((len(z), 2, 3))
-    P[:, 0, 0] = fx / zs
-    P[:, 0, 2] = -fx * x / zs**2
-    P[:, 1, 1] = fy / zs
-    P[:, 1, 2] = -fy * y / zs**2
-    J_feat = P @ Rt
-    J_pose = np.concatenate([-J_feat, P @ J_q], axis=2)
-    return h, J_pose, J_feat, z
+    return _zm(Xc, Rt, J_q, fx, fy, cx, cy)
 
 
 def feature_model_one_pose(
@@ -153,17 +161,7 @@ def feature_model_one_pose(
     d = X - np.asarray(p, float).reshape(1, 3)
     Xc = d @ Rt.T
     J_q = (d @ M.reshape(3, 12)).reshape(-1, 3, 4)  # sum_k d_k M_k
-    x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
-    zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
-    h = np.stack([fx * x / zs + cx, fy * y / zs + cy], -1)
-    P = np.zeros((len(z), 2, 3))
-    P[:, 0, 0] = fx / zs
-    P[:, 0, 2] = -fx * x / zs**2
-    P[:, 1, 1] = fy / zs
-    P[:, 1, 2] = -fy * y / zs**2
-    J_feat = P @ Rt
-    J_pose = np.concatenate([-J_feat, P @ J_q], axis=2)
-    return h, J_pose, J_feat, z
+    return _zm(Xc, Rt, J_q, fx, fy, cx, cy)
 
 
 def relative_position_with_jacobian(
