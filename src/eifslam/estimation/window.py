@@ -43,6 +43,17 @@ def _scatter_add(A: Array, flat: IntArray, v: Array) -> None:
         A[np.unravel_index(u, A.shape)] += np.bincount(inv.ravel(), v, minlength=len(u))  # u unique
 
 
+def _positions(values: IntArray, keys: IntArray) -> IntArray:
+    """Position of each of ``keys`` in ``values`` (distinct), -1 where it is not there."""
+    values, keys = np.asarray(values, np.int64), np.asarray(keys, np.int64).reshape(-1)
+    if len(values) == 0:
+        return np.full(len(keys), -1, np.int64)
+    order = np.argsort(values, kind="stable")
+    at = np.minimum(np.searchsorted(values, keys, sorter=order), len(values) - 1)
+    pos = order[at]
+    return np.where(values[pos] == keys, pos, -1)
+
+
 class ActiveWindow:
     """The marginal information of the active states and its last solve.
 
@@ -111,9 +122,8 @@ class ActiveWindow:
         """
         if self._S_cho is None:
             return None
-        where = {int(v): i for i, v in enumerate(self._S_pidx)}  # the window as solved
-        pos = [where.get(int(c), -1) for c in cols]
-        if min(pos) < 0:
+        pos = _positions(self._S_pidx, cols)  # the window as solved
+        if len(pos) == 0 or pos.min() < 0:
             return None
         E = np.zeros((len(self._S_pidx), len(pos)))
         E[pos, np.arange(len(pos))] = 1.0
@@ -144,8 +154,7 @@ class ActiveWindow:
         fidx = self._S_fidx
         if len(fidx) == 0 or len(self._Dinv) != len(fidx) // 3:
             return out
-        where = {int(v): i for i, v in enumerate(fidx[::3])}
-        blk = np.array([where.get(int(c), -1) for c in starts], np.int64)
+        blk = _positions(fidx[::3], starts)
         sel = blk >= 0
         if not sel.any():
             return out
@@ -193,15 +202,13 @@ class ActiveWindow:
         if len(pose_starts):
             if self._S_cho is None:
                 return None
-            where_p = {int(v): i for i, v in enumerate(self._S_pidx)}
-            pos = [where_p.get(int(c), -1) for c in (pose_starts[:, None] + np.arange(POSE_DIM)).ravel()]
-            if min(pos) < 0:
+            pos = _positions(self._S_pidx, (pose_starts[:, None] + np.arange(POSE_DIM)).ravel())
+            if pos.min() < 0:
                 return None
-            np.add.at(H.T, np.asarray(pos), G[:, :n_p].T)
+            np.add.at(H.T, pos, G[:, :n_p].T)
         fidx = self._S_fidx
         if len(fidx) and len(self._Dinv) == len(fidx) // 3 and len(starts):
-            where = {int(v): i for i, v in enumerate(fidx[::3])}
-            blk = np.array([where.get(int(c), -1) for c in starts], np.int64)
+            blk = _positions(fidx[::3], starts)
             have = blk >= 0
             if have.any():
                 b = blk[have]
@@ -209,7 +216,7 @@ class ActiveWindow:
                 GD = np.einsum("kmi,mij->kmj", Gh, self._Dinv[b])
                 out += np.einsum("kmj,lmj->kl", GD, Gh)
                 if self._S_cho is not None and npw and self._DB.shape == (len(fidx), npw):
-                    H -= np.einsum("kmi,mip->kp", Gh, self._DB.reshape(-1, 3, npw)[b])
+                    H -= Gh.reshape(k, -1) @ self._DB.reshape(-1, 3, npw)[b].reshape(-1, npw)
         if self._S_cho is not None and npw and np.any(H):
             out += H @ cho_solve(self._S_cho, H.T)
         return 0.5 * (out + out.T)
