@@ -91,13 +91,9 @@ class Conditional:
                 self._affine = (k, None, None) if rows is None else \
                     (k, self.factor.sparse(rows), sp.csr_matrix(self.C[rows]))
             k, sparse, Cr = self._affine
-            out = self.idx if at is None else self.idx[at]
-            if sparse is None:
-                x[out] = k if at is None else k[at]
-            elif at is None:
-                x[out] = k - sparse.solve(np.asarray(Cr @ x[self.cidx]).ravel())
-            else:
-                x[out] = k[at] - sparse.solve(np.asarray(Cr @ x[self.cidx]).ravel(), at)
+            sel = slice(None) if at is None else at
+            x[self.idx[sel]] = k[sel] if sparse is None else \
+                k[sel] - sparse.solve(np.asarray(Cr @ x[self.cidx]).ravel(), at)
             return
         r = self.b - self.C @ x[self.cidx] if len(self.cidx) else self.b.copy()
         x[self.idx] = apply_blocks(self.Dinv, r)

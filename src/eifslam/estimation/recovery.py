@@ -79,22 +79,15 @@ class SchurFactor:
     n: int
     B_cols: IntArray | None = None
 
-    def B_times(self, xp: Array) -> Array:
-        """``I_fp xp`` for pose values ``xp (P*7,)`` (or ``(P*7, m)``)."""
+    def B_times(self, xp: Array, rows: IntArray | None = None) -> Array:
+        """``I_fp xp`` for pose values ``xp (P*7,)`` (or ``(P*7, m)``); only its rows
+        ``rows`` (reading only those rows of ``B``) when given."""
+        B = self.B if rows is None else self.B[rows]
         if self.B_cols is None:
-            return np.asarray(self.B @ xp)
+            return np.asarray(B @ xp)
         full = np.zeros((self.B.shape[1],) + np.shape(xp)[1:])
         full[self.B_cols] = xp
-        return np.asarray(self.B @ full)
-
-    def B_rows_times(self, rows: IntArray, xp: Array) -> Array:
-        """Rows ``rows`` of ``I_fp xp`` (reading only those rows of ``B``)."""
-        Br = self.B[rows]
-        if self.B_cols is None:
-            return np.asarray(Br @ xp)
-        full = np.zeros(self.B.shape[1])
-        full[self.B_cols] = xp
-        return np.asarray(Br @ full)
+        return np.asarray(B @ full)
 
     def BT_times(self, v: Array | sp.spmatrix) -> Array | sp.spmatrix:
         """``I_pf v`` for ``v (F*3,)``, ``(F*3, m)`` or sparse ``(F*3, m)``: shape ``(P*7, ...)``."""
@@ -243,7 +236,7 @@ class SparseSolve:
             blocks = np.unique(out_f[~isp] // 3)
             rows = (3 * blocks[:, None] + np.arange(3)).ravel()
             xf = np.zeros(len(f.feat_idx))
-            xf[rows] = -apply_blocks(f.Dinv[blocks], f.B_rows_times(rows, xp))
+            xf[rows] = -apply_blocks(f.Dinv[blocks], f.B_times(xp, rows))
         if len(Dbc):
             xf[self._fent] += Dbc
         out = np.empty(len(out_p))
