@@ -238,6 +238,7 @@ def test_sparse_rebuilds_keep_the_features_elimination_and_stay_exact(monkeypatc
     import scipy.sparse as sp
 
     import eifslam.estimation.elimination as elimination
+    from eifslam.estimation import information
     from eifslam.estimation.recovery import feature_blocks, gram_by_blocks
 
     read = []  # features read from I by each update of the kept elimination
@@ -247,6 +248,8 @@ def test_sparse_rebuilds_keep_the_features_elimination_and_stay_exact(monkeypatc
         return feature_blocks(I, feat_idx, pose_idx)
 
     monkeypatch.setattr(elimination, "feature_blocks", counting)
+    monkeypatch.setattr(elimination, "_GATHER_ENTRIES", 50)  # B's rows kept a few at a time
+    monkeypatch.setattr(information, "BLOCK_NONZEROS", 200)  # and I's blocks read in many pieces
     sc, m = scene(20, 5)
     f = run_slam(sc, m, InformationFilter(sc.camera, recovery="incremental", window=1))
     inc = f.incremental
@@ -270,6 +273,7 @@ def test_sparse_rebuilds_keep_the_features_elimination_and_stay_exact(monkeypatc
         I = f.info.matrix_csr()
         poses = np.flatnonzero(~np.isin(np.arange(f.dim), f.index_sets()[1]))
         D, B = feature_blocks(I, elim.entries(), poses)
+        np.testing.assert_array_equal(elim.B.toarray()[:, : len(poses)], B.toarray())
         Dinv = np.linalg.inv(D)
         G = gram_by_blocks(B, Dinv).toarray()
         g = B.T @ np.einsum("fij,fj->fi", Dinv, f.info.vector[elim.entries()].reshape(-1, 3)).ravel()

@@ -12,6 +12,7 @@ from eifslam.estimation.information import InformationStore
 @pytest.mark.parametrize("fold", [10**9, 300, 50])
 def test_the_matrix_is_the_sum_of_every_block_whatever_the_folding(monkeypatch, fold):
     monkeypatch.setattr(information, "FOLD_TRIPLETS", fold)
+    monkeypatch.setattr(information, "BLOCK_NONZEROS", 7)
     rng = np.random.default_rng(0)
     store, dense, vec = InformationStore(), np.zeros((0, 0)), np.zeros(0)
     n = 3
@@ -36,6 +37,11 @@ def test_the_matrix_is_the_sum_of_every_block_whatever_the_folding(monkeypatch, 
             assert Ir.format == "csr" and Ir.shape == (len(rows), n) and Ir.has_canonical_format
             np.testing.assert_allclose(Ir.toarray(), dense[rows], atol=1e-12)
             np.testing.assert_allclose(R.tocsr().toarray(), dense, atol=1e-12)
+            cols = rng.choice(n, min(n, 4), replace=False)
+            for A in (R, R.tocsr()):  # a block read a few entries at a time, of the parts or of one matrix
+                Ib = information.block(A, rows, cols)
+                assert Ib.format == "csr" and Ib.shape == (len(rows), len(cols)) and Ib.has_canonical_format
+                np.testing.assert_allclose(Ib.toarray(), dense[np.ix_(rows, cols)], atol=1e-12)
     I = store.matrix()
     assert I.shape == (n, n) and I.has_canonical_format
     np.testing.assert_allclose(I.toarray(), dense, atol=1e-12)

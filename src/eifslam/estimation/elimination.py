@@ -32,6 +32,9 @@ IntArray = NDArray[np.int64]
 
 __all__ = ["FeatureElimination"]
 
+#: Entries gathered per pass when ``B`` loses rows (a 16 MB index at a time).
+_GATHER_ENTRIES = 2_000_000
+
 
 class FeatureElimination:
     """``G``, ``g`` of a set of eliminated features, kept up to date between rebuilds.
@@ -99,20 +102,23 @@ class FeatureElimination:
             Bd = self.B[drop_rows]
             self.G = self.G - gram_by_blocks(Bd, self.Dinv[~keep])
             self.g = self.g - Bd.T @ self.y[drop_rows]
-            kept_rows = self._rows(np.flatnonzero(keep))
-            self.starts, self.Dinv = self.starts[keep], self.Dinv[keep]
-            self.B, self.y = self.B[kept_rows], self.y[kept_rows]
-        add = feat_starts[~np.isin(feat_starts, self.starts)]
+            del Bd
+        add = feat_starts[~np.isin(feat_starts, self.starts[keep])]
+        Ba = None
         if len(add):
             D, Ba = feature_blocks(I, block_entries(add), pose_entries)
             Dinv = inverse_spd_blocks(D)
             y = apply_blocks(Dinv, np.asarray(i, float)[block_entries(add)])
             self.G = self.G + gram_by_blocks(Ba, Dinv)
             self.g = self.g + Ba.T @ y
-            self.starts = np.concatenate([self.starts, add])
-            self.Dinv = np.concatenate([self.Dinv, Dinv])
-            self.B = sp.vstack([self.B, Ba], format="csr")
-            self.y = np.concatenate([self.y, y])
+        if len(add) or not keep.all():
+            kept_rows = self._rows(np.flatnonzero(keep))
+            self.B = _rows_then(self.B, kept_rows, Ba)  # one copy of B, not one per step
+            self.starts, self.Dinv, self.y = self.starts[keep], self.Dinv[keep], self.y[kept_rows]
+            if len(add):
+                self.starts = np.concatenate([self.starts, add])
+                self.Dinv = np.concatenate([self.Dinv, Dinv])
+                self.y = np.concatenate([self.y, y])
         self.G = sp.csr_matrix(self.G)
         self._dirty[:] = False
 
@@ -164,3 +170,28 @@ class FeatureElimination:
     def _rows(blocks: IntArray) -> IntArray:
         """The rows of ``B`` (and ``y``) of the features at positions ``blocks``."""
         return block_entries(3 * np.asarray(blocks, np.int64))
+
+
+def _rows_then(B: sp.csr_matrix, rows: IntArray, more: sp.csr_matrix | None) -> sp.csr_matrix:
+    """``vstack([B[rows], more])`` (CSR, sorted indices as ``B``'s and ``more``'s) written
+    straight into the result's arrays: the old ``B`` and the result are the only copies
+    alive at once."""
+    counts = np.diff(B.indptr)[rows]
+    extra = 0 if more is None else more.nnz
+    indptr = np.zeros(len(rows) + 1 + (0 if more is None else more.shape[0]), np.int64)
+    np.cumsum(counts, out=indptr[1: len(rows) + 1])
+    nnz = int(indptr[len(rows)])
+    data = np.empty(nnz + extra, B.data.dtype)
+    indices = np.empty(nnz + extra, B.indices.dtype if extra == 0 else np.result_type(B.indices, more.indices))
+    step = max(1, len(rows) * _GATHER_ENTRIES // max(nnz, 1))  # rows per pass: a bounded gather index
+    for a in range(0, len(rows), step):
+        b = min(a + step, len(rows))
+        lo, hi = int(indptr[a]), int(indptr[b])
+        src = np.repeat(B.indptr[rows[a:b]] - indptr[a:b], counts[a:b]) + np.arange(lo, hi)  # positions in B
+        data[lo:hi], indices[lo:hi] = B.data[src], B.indices[src]
+    if more is not None:
+        indptr[len(rows) + 1:] = nnz + more.indptr[1:]
+        data[nnz:], indices[nnz:] = more.data, more.indices
+    out = sp.csr_matrix((data, indices, indptr), shape=(len(indptr) - 1, B.shape[1]))
+    out.has_sorted_indices = B.has_sorted_indices and (more is None or more.has_sorted_indices)
+    return out

@@ -17,6 +17,7 @@ Priors and pseudo-measurements are stored with the measurements, so smoothing
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Iterator
 
 import numpy as np
 import scipy.sparse as sp
@@ -339,6 +340,15 @@ class InformationFilter:
     def information_matrix(self) -> sp.csc_matrix:
         """``I`` as a sparse matrix ``(dim, dim)``."""
         return self.info.matrix()
+
+    def information_blocks(self) -> Iterator[sp.csc_matrix]:
+        """``I`` as consecutive blocks of whole columns (CSC), for a writer that streams it
+        (:meth:`~eifslam.estimation.information.InformationStore.column_blocks`)."""
+        return self.info.column_blocks()
+
+    def information_nnz(self) -> int:
+        """Stored entries of ``I`` (counted without summing it into one matrix)."""
+        return self.info.nnz
 
     def information_vector(self) -> Array:
         """``i`` as a vector ``(dim,)`` (a copy)."""

@@ -63,7 +63,7 @@ from numpy.typing import NDArray
 from scipy.linalg import cho_solve
 
 from ..errors import ConfigError, EstimatorError, SessionError
-from .information import InformationStore, SummedRows
+from .information import InformationStore, SummedRows, block
 from .elimination import FeatureElimination
 from .statedict import sub, take_ids, take_int
 from .state import FEATURE_DIM, POSE_DIM, StateKind, StateLayout
@@ -558,7 +558,7 @@ class IncrementalRecovery:
         age = s - self._last[start]
         fa = np.flatnonzero(isf & (age < max(self.feature_window, self.rebuild_horizon)))
         pose_all = np.flatnonzero(~isf)
-        Ifp = I[fa][:, pose_all]
+        Ifp = block(I, fa, pose_all)
         coupled = np.zeros(n, bool)
         coupled[pose_all[np.unique(Ifp.tocoo().col)]] = True
         blk_coupled = np.zeros(n, bool)
@@ -579,8 +579,8 @@ class IncrementalRecovery:
                                                      factor=factor.restricted(m)))
             else:
                 P, bp = Ia[:, pa].toarray(), i[pa].copy()
-        D = sparse_diagonal_blocks(I[fa][:, fa])
-        self.window.reset_to(pa, fa, P, bp, D, I[fa][:, pa].toarray(), i[fa].copy())
+        D = sparse_diagonal_blocks(block(I, fa, fa))
+        self.window.reset_to(pa, fa, P, bp, D, block(I, fa, pa).toarray(), i[fa].copy())
 
 
     def _eliminate_undoably(self, I: sp.csr_matrix | SummedRows, i: Array, pa: IntArray, mf: IntArray,
@@ -599,14 +599,13 @@ class IncrementalRecovery:
         """
         ps = np.concatenate([pa, mp])
         na = len(pa)
-        Spp = I[ps][:, ps].toarray()
+        Spp = block(I, ps, ps).toarray()
         sv = i[ps].copy()
         if len(mf):
             F = len(mf) // FEATURE_DIM
-            If = I[mf]
-            D = sparse_diagonal_blocks(If[:, mf])
+            D = sparse_diagonal_blocks(block(I, mf, mf))
             Dinv = inverse_spd_blocks(D)
-            Bf = sp.csr_matrix(If[:, ps])  # (3F, len(ps))
+            Bf = block(I, mf, ps)  # (3F, len(ps))
             Dsp = block_diagonal_csr(Dinv)
             Spp -= (Bf.T @ (Dsp @ Bf)).toarray()
             sv -= Bf.T @ (Dsp @ i[mf])

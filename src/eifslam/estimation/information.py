@@ -16,6 +16,8 @@ cost stays proportional to the non-zeros added.
 
 from __future__ import annotations
 
+from typing import Iterator
+
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
@@ -33,6 +35,9 @@ FOLD_TRIPLETS = 2_000_000
 #: one's non-zeros.
 MERGE_FRACTION = 0.25
 
+#: Stored entries read at a time by :func:`block` (about 24 MB of them).
+BLOCK_NONZEROS = 2_000_000
+
 
 class InformationStore:
     """Information matrix ``I`` (sparse, symmetric) and vector ``i`` of a growing state."""
@@ -49,6 +54,8 @@ class InformationStore:
         #: Times ``I`` and ``i`` were replaced wholesale (:meth:`reset`, :meth:`set`): a sum of
         #: fusions recorded at one generation can be subtracted only at that generation.
         self.generation = 0
+        self._changes = 0  # additions and replacements so far (what a count of non-zeros is valid for)
+        self._nnz: tuple[int, int] | None = None  # (changes, nnz) of the last count
 
     def grow(self, dim: int) -> None:
         """Augment the state with zeros up to ``dim`` entries (Algorithm 1, step 4)."""
@@ -83,6 +90,7 @@ class InformationStore:
             raise FloatingPointError("refusing to fuse non-finite information")
         k = idx.shape[1]
         idx = self._indices(idx)
+        self._changes += 1
         self._rows.append(np.repeat(idx, k, axis=1).ravel())
         self._cols.append(np.tile(idx, (1, k)).ravel())
         self._vals.append(Lam.ravel())
@@ -143,6 +151,7 @@ class InformationStore:
                                  G @ eta[:, part])
         a, b = idx[:, :split], idx[:, split:]
         a, b = self._indices(a), self._indices(b)
+        self._changes += 1
         na, nb = a.shape[1], b.shape[1]
         cross = Lam[:, :split, split:]
         self._rows += [np.repeat(a, nb, axis=1).ravel(), np.repeat(b, na, axis=1).ravel()]
@@ -174,6 +183,43 @@ class InformationStore:
         self._cached = base
         return base
 
+    def column_blocks(self) -> Iterator[sp.csc_matrix]:
+        """``I`` as consecutive blocks of whole columns, each the sum of its parts (CSC,
+        ``(dim, w)``, about :data:`BLOCK_NONZEROS` stored entries each), without summing
+        the whole matrix: what :meth:`matrix` returns, one block at a time, for a writer
+        that streams it (summing the parts into one matrix holds the old and the new main
+        part at once: 0.3 GB more at the loop world's end)."""
+        n = self.dim
+        if self._pending:
+            self._fold()
+        parts = [_extend(self._cached, n)] + ([_extend(self._recent, n)] if self._recent is not None else [])
+        per_col = sum(np.diff(P.indptr) for P in parts)
+        ends = np.searchsorted(np.cumsum(per_col), BLOCK_NONZEROS * np.arange(1, per_col.sum() // BLOCK_NONZEROS + 1),
+                               side="right")
+        bounds = np.unique(np.concatenate([[0], np.clip(ends, 1, max(n, 1)), [n]]))
+        changes, nnz = self._changes, 0
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            piece = parts[0][:, a:b]
+            for P in parts[1:]:
+                piece = piece + P[:, a:b]
+            piece = sp.csc_matrix(piece)
+            piece.sum_duplicates()
+            nnz += piece.nnz
+            yield piece
+        if changes == self._changes:
+            self._nnz = (changes, int(nnz))  # every block read: the count of :attr:`nnz`
+
+    @property
+    def nnz(self) -> int:
+        """Stored entries of :meth:`matrix` (its parts' sum counted a block at a time when
+        they are not summed yet: the count does not sum the whole matrix)."""
+        if self._recent is None and not self._pending:
+            return int(self._cached.nnz)
+        if self._nnz is None or self._nnz[0] != self._changes:
+            for _ in self.column_blocks():  # counts as it goes
+                pass
+        return self._nnz[1]
+
     def rows(self) -> "SummedRows":
         """``I`` read by rows without summing its parts into one matrix: the waiting
         triplets are summed into the recent part (as they would be anyway) and the main
@@ -201,6 +247,7 @@ class InformationStore:
         """Zero information, same dimension (smoothing starts from here)."""
         self._vec[:] = 0.0
         self.generation += 1
+        self._changes += 1
         self._rows, self._cols, self._vals, self._pending = [], [], [], 0
         self._recent = None
         self._cached = sp.csc_matrix((self.dim, self.dim))
@@ -208,6 +255,7 @@ class InformationStore:
     def set(self, I: sp.spmatrix, i: Array) -> None:
         """Replace ``I`` and ``i`` (scale recovery)."""
         self.generation += 1
+        self._changes += 1
         self._rows, self._cols, self._vals, self._pending = [], [], [], 0
         self._recent = None
         self._cached = sp.csc_matrix(I)
@@ -239,12 +287,50 @@ class SummedRows:
         out.sum_duplicates()
         return out
 
+    def block(self, rows: IntArray, cols: IntArray) -> sp.csr_matrix:
+        """``A[rows][:, cols]`` (canonical CSR), read :data:`BLOCK_NONZEROS` non-zeros of
+        the parts' rows at a time: the rows of a pose hold its coupling to every feature
+        it saw, so ``A[rows]`` of many poses is a copy of much of ``A`` (and the sum of
+        the parts two more) for the few columns kept."""
+        return _chunked_block(self.parts, np.asarray(rows, np.int64), np.asarray(cols, np.int64))
+
     def tocsr(self) -> sp.csr_matrix:
         """The whole sum as one CSR matrix."""
         out = self.parts[0]
         for p in self.parts[1:]:
             out = out + p
         return sp.csr_matrix(out)
+
+
+def block(A: sp.csr_matrix | SummedRows, rows: IntArray, cols: IntArray) -> sp.csr_matrix:
+    """``A[rows][:, cols]`` of a CSR matrix or a :class:`SummedRows` (canonical CSR),
+    read a bounded number of non-zeros at a time (:meth:`SummedRows.block`)."""
+    if isinstance(A, SummedRows):
+        return A.block(rows, cols)
+    return _chunked_block([sp.csr_matrix(A)], np.asarray(rows, np.int64), np.asarray(cols, np.int64))
+
+
+def _chunked_block(parts: list[sp.csr_matrix], rows: IntArray, cols: IntArray) -> sp.csr_matrix:
+    """The sum of ``P[rows][:, cols]`` over the CSR ``parts``, rows taken in runs of at most
+    :data:`BLOCK_NONZEROS` stored entries (each run's rows cut to ``cols`` before the next
+    is read)."""
+    per_row = sum(np.diff(P.indptr)[rows] for P in parts) if len(rows) else np.zeros(0, np.int64)
+    ends = np.searchsorted(np.cumsum(per_row), BLOCK_NONZEROS * np.arange(1, per_row.sum() // BLOCK_NONZEROS + 1),
+                           side="right")
+    bounds = np.unique(np.concatenate([[0], np.clip(ends, 1, len(rows)), [len(rows)]]))
+    out = []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        piece = None
+        for P in parts:
+            sub = P[rows[a:b]][:, cols]
+            piece = sub if piece is None else piece + sub
+        out.append(sp.csr_matrix(piece))
+    if len(out) != 1:
+        res = sp.vstack(out, format="csr") if out else sp.csr_matrix((0, len(cols)))
+    else:
+        res = out[0]
+    res.sum_duplicates()
+    return res
 
 
 def _extend(A: sp.csc_matrix, n: int) -> sp.csc_matrix:

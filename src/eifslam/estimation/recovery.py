@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from scipy.sparse.linalg import splu
 
 from ..errors import EstimatorError
-from .information import SummedRows
+from .information import SummedRows, block
 from .blocks import apply_blocks, block_diagonal_csr, cholesky_blocks, gather_diagonal_blocks, inverse_spd_blocks
 
 Array = NDArray[np.float64]
@@ -309,7 +309,7 @@ def _marginal_by_solves(factor: SchurFactor, I: sp.csr_matrix | SummedRows, keep
     """:func:`factorize_onto`'s result from ``len(keep) + 1`` solves with ``factor``
     (:meth:`SchurFactor.project`)."""
     CtAC, CtAb = factor.project(sp.csr_matrix(I[keep].T), i)
-    return factor, I[keep][:, keep].toarray() - CtAC, np.asarray(i, float)[keep] - CtAb
+    return factor, block(I, keep, keep).toarray() - CtAC, np.asarray(i, float)[keep] - CtAb
 
 
 def factorize_onto(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray, keep: IntArray,
@@ -388,7 +388,7 @@ def reduced_onto(I: sp.csr_matrix | SummedRows, pose_idx: IntArray, feat_idx: In
     nm, k = len(pose_idx), len(keep)
     ps = np.concatenate([pose_idx, keep])
     i = np.asarray(i, float)
-    T = sp.csr_matrix(I[ps][:, ps] - G)
+    T = sp.csr_matrix(block(I, ps, ps) - G)
     T = 0.5 * (T + T.T)
     r = i[ps] - np.asarray(g).ravel()
     if nm == 0:  # only features eliminated: the reduced matrix is the marginal
@@ -430,11 +430,11 @@ def factorize(I: sp.spmatrix, pose_idx: IntArray, feat_idx: IntArray) -> SchurFa
     if F:
         D, B = feature_blocks(I, np.asarray(feat_idx, np.int64), np.asarray(pose_idx, np.int64))
         Dinv = inverse_spd_blocks(D)
-        S = I[pose_idx][:, pose_idx] - gram_by_blocks(B, Dinv)
+        S = block(I, pose_idx, pose_idx) - gram_by_blocks(B, Dinv)
     else:
         Dinv = np.zeros((0, 3, 3))
         B = sp.csr_matrix((0, len(pose_idx)))
-        S = I[pose_idx][:, pose_idx]
+        S = block(I, pose_idx, pose_idx)
     S = sp.csc_matrix(0.5 * (S + S.T))
     S_factor = sparse_cholesky(S) if len(pose_idx) else None
     return SchurFactor(pose_idx, feat_idx, Dinv, B, S_factor, n)
