@@ -193,16 +193,10 @@ class InformationStore:
         if self._pending:
             self._fold()
         parts = [_extend(self._cached, n)] + ([_extend(self._recent, n)] if self._recent is not None else [])
-        per_col = sum(np.diff(P.indptr) for P in parts)
-        ends = np.searchsorted(np.cumsum(per_col), BLOCK_NONZEROS * np.arange(1, per_col.sum() // BLOCK_NONZEROS + 1),
-                               side="right")
-        bounds = np.unique(np.concatenate([[0], np.clip(ends, 1, max(n, 1)), [n]]))
+        bounds = _runs(sum(np.diff(P.indptr) for P in parts))
         changes, nnz = self._changes, 0
         for a, b in zip(bounds[:-1], bounds[1:]):
-            piece = parts[0][:, a:b]
-            for P in parts[1:]:
-                piece = piece + P[:, a:b]
-            piece = sp.csc_matrix(piece)
+            piece = sp.csc_matrix(_summed([P[:, a:b] for P in parts]))
             piece.sum_duplicates()
             nnz += piece.nnz
             yield piece
@@ -280,10 +274,7 @@ class SummedRows:
         self.shape = parts[0].shape
 
     def __getitem__(self, rows) -> sp.csr_matrix:
-        out = self.parts[0][rows]
-        for p in self.parts[1:]:
-            out = out + p[rows]
-        out = sp.csr_matrix(out)
+        out = sp.csr_matrix(_summed([p[rows] for p in self.parts]))
         out.sum_duplicates()
         return out
 
@@ -296,10 +287,7 @@ class SummedRows:
 
     def tocsr(self) -> sp.csr_matrix:
         """The whole sum as one CSR matrix."""
-        out = self.parts[0]
-        for p in self.parts[1:]:
-            out = out + p
-        return sp.csr_matrix(out)
+        return sp.csr_matrix(_summed(self.parts))
 
 
 def block(A: sp.csr_matrix | SummedRows, rows: IntArray, cols: IntArray) -> sp.csr_matrix:
@@ -314,23 +302,32 @@ def _chunked_block(parts: list[sp.csr_matrix], rows: IntArray, cols: IntArray) -
     """The sum of ``P[rows][:, cols]`` over the CSR ``parts``, rows taken in runs of at most
     :data:`BLOCK_NONZEROS` stored entries (each run's rows cut to ``cols`` before the next
     is read)."""
-    per_row = sum(np.diff(P.indptr)[rows] for P in parts) if len(rows) else np.zeros(0, np.int64)
-    ends = np.searchsorted(np.cumsum(per_row), BLOCK_NONZEROS * np.arange(1, per_row.sum() // BLOCK_NONZEROS + 1),
-                           side="right")
-    bounds = np.unique(np.concatenate([[0], np.clip(ends, 1, len(rows)), [len(rows)]]))
-    out = []
-    for a, b in zip(bounds[:-1], bounds[1:]):
-        piece = None
-        for P in parts:
-            sub = P[rows[a:b]][:, cols]
-            piece = sub if piece is None else piece + sub
-        out.append(sp.csr_matrix(piece))
+    bounds = _runs(sum(np.diff(P.indptr)[rows] for P in parts))
+    out = [sp.csr_matrix(_summed([P[rows[a:b]][:, cols] for P in parts])) for a, b in zip(bounds[:-1], bounds[1:])]
     if len(out) != 1:
         res = sp.vstack(out, format="csr") if out else sp.csr_matrix((0, len(cols)))
     else:
         res = out[0]
     res.sum_duplicates()
     return res
+
+
+def _runs(counts: IntArray) -> IntArray:
+    """Bounds ``[0, ..., len(counts)]`` cutting consecutive items (rows or columns holding
+    ``counts`` stored entries) into runs of about :data:`BLOCK_NONZEROS` entries; an item
+    holding more is a run of its own."""
+    n = len(counts)
+    ends = np.searchsorted(np.cumsum(counts), BLOCK_NONZEROS * np.arange(1, int(np.sum(counts)) // BLOCK_NONZEROS + 1),
+                           side="right")
+    return np.unique(np.concatenate([[0], np.clip(ends, 1, max(n, 1)), [n]])).astype(np.int64)
+
+
+def _summed(pieces: list[sp.spmatrix]) -> sp.spmatrix:
+    """The sum of sparse matrices of one shape (the first one itself when alone)."""
+    out = pieces[0]
+    for p in pieces[1:]:
+        out = out + p
+    return out
 
 
 def _extend(A: sp.csc_matrix, n: int) -> sp.csc_matrix:
