@@ -367,3 +367,36 @@ def test_a_released_frame_keeps_what_reobservation_needs_only(texture):
     rows_b, d_b = back._last_desc[0]  # loaded: those that still are (some were found again in frame 2)
     assert 0 < len(rows_b) <= len(rows) and np.isin(rows_b, rows).all()
     assert np.array_equal(d_b, d[np.searchsorted(rows, rows_b)])
+
+
+def test_forgotten_frames_keep_only_the_track_ends_that_are_still_ends(texture, monkeypatch):
+    """Each forget prunes the oldest forgotten frames' descriptors to the rows that are still
+    some track's last observation: re-observation finds the same tracks as with nothing
+    pruned, and the ends it moved to a later frame are dropped from the older one."""
+    others = [_rotated_view(_texture(np.random.default_rng(s)), 0.0) for s in (1, 2, 3, 4)]
+
+    def run(prune: bool) -> tuple[FrontEnd, int]:
+        fe = FrontEnd(CAM, FrontEndConfig(match_window=1, max_features=1500))
+        if not prune:
+            monkeypatch.setattr(fe, "_prune_last_desc", lambda n: None)
+        views = [_rotated_view(texture, float(a)) for a in range(4)] + [others[0], _rotated_view(texture, 3.0)]
+        for k, img in enumerate(views):
+            fe.add_frame(img, k)
+            fe.release(k)
+        ids3, uv3 = fe.map_observations(3)  # tracks since frame 0, lost in the other scene
+        found = fe.reobserve(5, ids3, uv3, radius_px=5.0)  # their ends move from frame 3 to 5
+        for k, img in enumerate(others[1:], start=6):
+            fe.add_frame(img, k)
+            fe.release(k)
+        return fe, found
+
+    pruned, found = run(True)
+    unpruned, found_unpruned = run(False)
+    assert found == found_unpruned > 100
+    total = sum(len(r) for r, _ in pruned._last_desc.values())
+    assert total < sum(len(r) for r, _ in unpruned._last_desc.values())
+    for f, (rows, d) in pruned._last_desc.items():
+        assert np.isin(pruned._last_rows(f), rows).all() and len(rows) == len(d)
+    pruned._prune_last_desc(len(pruned._last_desc))  # every entry once more: exactly the ends
+    for f, (rows, d) in pruned._last_desc.items():
+        assert np.array_equal(rows, pruned._last_rows(f))

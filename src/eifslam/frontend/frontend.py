@@ -570,11 +570,23 @@ class FrontEnd:
         if fid in self._desc:
             rows = self._last_rows(fid)
             self._last_desc[fid] = (rows, self._desc[fid][rows].copy())
+            self._prune_last_desc(2)
         self._desc.pop(fid, None)
         self._index.pop(fid, None)
         self._released.discard(fid)
         d = fr.feats.descriptors
         fr.feats = replace(fr.feats, descriptors=np.empty((0,) + d.shape[1:], d.dtype))  # not a view: it would keep d
+
+    def _prune_last_desc(self, n: int) -> None:
+        """Drop from the ``n`` longest-kept entries of the forgotten frames' descriptors the
+        rows that are no longer some track's last observation (a later frame saw the
+        track): each forgotten frame takes two such turns, so what is kept stays about
+        what :meth:`reobserve` can read, not every track end ever forgotten."""
+        for f in list(islice(self._last_desc, n)):
+            kept, d = self._last_desc.pop(f)
+            keep = np.isin(kept, self._last_rows(f))
+            if keep.any():
+                self._last_desc[f] = (kept[keep], d[keep])  # to the end of the turns
 
     def _match_window(self) -> list[int]:
         """The frames a new frame is matched against, newest first: the last
