@@ -103,7 +103,8 @@ class FeatureElimination:
             self.G = self.G - gram_by_blocks(Bd, self.Dinv[~keep])
             self.g = self.g - Bd.T @ self.y[drop_rows]
             del Bd
-        add = feat_starts[~np.isin(feat_starts, self.starts[keep])]
+        kept_starts = self.starts[keep]
+        add = feat_starts[~np.isin(feat_starts, kept_starts)]
         Ba = None
         if len(add):
             D, Ba = feature_blocks(I, block_entries(add), pose_entries)
@@ -114,7 +115,7 @@ class FeatureElimination:
         if len(add) or not keep.all():
             kept_rows = self._rows(np.flatnonzero(keep))
             self.B = _rows_then(self.B, kept_rows, Ba)  # one copy of B, not one per step
-            self.starts, self.Dinv, self.y = self.starts[keep], self.Dinv[keep], self.y[kept_rows]
+            self.starts, self.Dinv, self.y = kept_starts, self.Dinv[keep], self.y[kept_rows]
             if len(add):
                 self.starts = np.concatenate([self.starts, add])
                 self.Dinv = np.concatenate([self.Dinv, Dinv])

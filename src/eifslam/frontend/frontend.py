@@ -578,10 +578,11 @@ class FrontEnd:
         fr.feats = replace(fr.feats, descriptors=np.empty((0,) + d.shape[1:], d.dtype))  # not a view: it would keep d
 
     def _prune_last_desc(self, n: int) -> None:
-        """Drop from the ``n`` longest-kept entries of the forgotten frames' descriptors the
-        rows that are no longer some track's last observation (a later frame saw the
-        track): each forgotten frame takes two such turns, so what is kept stays about
-        what :meth:`reobserve` can read, not every track end ever forgotten."""
+        """Drop from the ``n`` entries of the forgotten frames' descriptors pruned longest ago
+        the rows that are no longer some track's last observation (re-observation or a
+        loop moved the track's end to a later frame); a pruned entry goes to the back of the
+        turns. Each forget prunes two, so what is kept stays what :meth:`reobserve` can
+        read, not every track end ever forgotten."""
         for f in list(islice(self._last_desc, n)):
             kept, d = self._last_desc.pop(f)
             keep = np.isin(kept, self._last_rows(f))
