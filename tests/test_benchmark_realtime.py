@@ -66,3 +66,16 @@ def test_realtime_smoke(tmp_path):
     assert page.startswith("# ") and "- Commit: " in page and "Command: `python -m benchmarks.realtime" in page
     assert "| tiny [t] | sift | 5 |" in page
     assert realtime.main(["--data", str(data), "--out", str(tmp_path / "o2"), "--only", "nothing"]) == 2
+
+
+def test_peak_memory_reset_forgets_what_an_earlier_run_freed():
+    """The peak of a run starts from what the process holds once the runs before handed
+    their freed memory back, not from their peak."""
+    if realtime.peak_rss_mb() is None or not realtime.reset_peak_rss():
+        pytest.skip("no /proc peak to read or reset here")
+    before = realtime.peak_rss_mb()
+    a = np.ones(200_000_000 // 8)  # 200 MB, touched
+    assert realtime.peak_rss_mb() > before + 150
+    del a
+    assert realtime.reset_peak_rss()
+    assert realtime.peak_rss_mb() < before + 50
