@@ -580,7 +580,8 @@ class IncrementalRecovery:
             else:
                 P, bp = Ia[:, pa].toarray(), i[pa].copy()
         D = sparse_diagonal_blocks(block(I, fa, fa))
-        self.window.reset_to(pa, fa, P, bp, D, block(I, fa, pa).toarray(), i[fa].copy())
+        Ifa = Ifp[:, np.searchsorted(pose_all, pa)].toarray()  # pa among pose_all (both sorted)
+        self.window.reset_to(pa, fa, P, bp, D, Ifa, i[fa].copy())
 
 
     def _eliminate_undoably(self, I: sp.csr_matrix | SummedRows, i: Array, pa: IntArray, mf: IntArray,
@@ -603,9 +604,10 @@ class IncrementalRecovery:
         sv = i[ps].copy()
         if len(mf):
             F = len(mf) // FEATURE_DIM
-            D = sparse_diagonal_blocks(block(I, mf, mf))
+            If = block(I, mf, np.concatenate([mf, ps]))  # the features' rows read once
+            D = sparse_diagonal_blocks(If[:, : len(mf)])
             Dinv = inverse_spd_blocks(D)
-            Bf = block(I, mf, ps)  # (3F, len(ps))
+            Bf = sp.csr_matrix(If[:, len(mf):])  # (3F, len(ps))
             Dsp = block_diagonal_csr(Dinv)
             Spp -= (Bf.T @ (Dsp @ Bf)).toarray()
             sv -= Bf.T @ (Dsp @ i[mf])

@@ -189,10 +189,7 @@ class InformationStore:
         the whole matrix: what :meth:`matrix` returns, one block at a time, for a writer
         that streams it (summing the parts into one matrix holds the old and the new main
         part at once: 0.3 GB more at the loop world's end)."""
-        n = self.dim
-        if self._pending:
-            self._fold()
-        parts = [_extend(self._cached, n)] + ([_extend(self._recent, n)] if self._recent is not None else [])
+        parts = self._parts()
         bounds = _runs(sum(np.diff(P.indptr) for P in parts))
         changes, nnz = self._changes, 0
         for a, b in zip(bounds[:-1], bounds[1:]):
@@ -221,11 +218,15 @@ class InformationStore:
         :meth:`matrix_csr`). Taking some rows of the sum costs the non-zeros of those rows
         only, where :meth:`matrix` first sums every non-zero of ``I`` (about 1 s and a
         second copy of the matrix at the loop world's 35 M non-zeros)."""
+        return SummedRows([sp.csr_matrix((C.data, C.indices, C.indptr), shape=C.shape) for C in self._parts()])
+
+    def _parts(self) -> list[sp.csc_matrix]:
+        """The main and the recent part, ``(dim, dim)`` each, the waiting triplets summed
+        into the recent one first (as they would be anyway)."""
         n = self.dim
         if self._pending:
             self._fold()
-        parts = [_extend(self._cached, n)] + ([_extend(self._recent, n)] if self._recent is not None else [])
-        return SummedRows([sp.csr_matrix((C.data, C.indices, C.indptr), shape=C.shape) for C in parts])
+        return [_extend(self._cached, n)] + ([_extend(self._recent, n)] if self._recent is not None else [])
 
     def matrix_csr(self) -> sp.csr_matrix:
         """``I`` as CSR without a format conversion: ``I`` is symmetric, so the arrays of
@@ -304,10 +305,9 @@ def _chunked_block(parts: list[sp.csr_matrix], rows: IntArray, cols: IntArray) -
     is read)."""
     bounds = _runs(sum(np.diff(P.indptr)[rows] for P in parts))
     out = [sp.csr_matrix(_summed([P[rows[a:b]][:, cols] for P in parts])) for a, b in zip(bounds[:-1], bounds[1:])]
-    if len(out) != 1:
-        res = sp.vstack(out, format="csr") if out else sp.csr_matrix((0, len(cols)))
-    else:
-        res = out[0]
+    if not out:
+        return sp.csr_matrix((0, len(cols)))
+    res = out[0] if len(out) == 1 else sp.vstack(out, format="csr")
     res.sum_duplicates()
     return res
 
