@@ -53,17 +53,19 @@ def _fit_vocabulary(X: NDArray[np.float32], n_words: int, seed: int) -> NDArray[
     against 1.7 s in one thread, for the same centres. (The BLAS limit is process-wide
     while it lasts; the runner holds BLAS to ``runtime.blas_threads``, 1, anyway.)
 
-    One initialisation (k-means++), not the best of three: on 20 frames of
-    7scenes-redkitchen-a (300 descriptors each) three cost 5.6 s of CPU with ORB's 256
-    unpacked bits and 1.7 s with SIFT, one 1.3 s and 0.6 s, for an inertia 0.9% higher
-    (ORB) and 0.1% lower (SIFT). The run joins k-means at a fixed frame (``learn_lag``), and
-    three initialisations did not finish by then on ORB runs: tracking waited 0.7-2.5 s
-    for it on five shared sets."""
+    One k-means++ initialisation on 1024 of the descriptors (scikit-learn's default: the
+    best of three on ``3 * batch_size``). The run joins k-means at a fixed frame
+    (``learn_lag``), and with the default initialisation it was not done by then on ORB
+    runs: tracking waited 0.7-3.3 s for it on five shared sets. On 20 frames of kitti-seq1
+    (300 descriptors each, one quiet thread) the default costs 2.6 s of CPU with ORB's 256
+    unpacked bits and 1.45 s with SIFT, this 0.4 s and 0.3 s, for an inertia 1.1% (ORB)
+    and 1.2% (SIFT) higher."""
     from sklearn.cluster import MiniBatchKMeans
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=1):
-        km = MiniBatchKMeans(n_clusters=n_words, random_state=seed, n_init=1, batch_size=2048, max_iter=50).fit(X)
+        km = MiniBatchKMeans(n_clusters=n_words, random_state=seed, n_init=1, init_size=1024, batch_size=2048,
+                             max_iter=50).fit(X)
     return km.cluster_centers_.astype(np.float32)
 
 
