@@ -53,13 +53,13 @@ def _fit_vocabulary(X: NDArray[np.float32], n_words: int, seed: int) -> NDArray[
     against 1.7 s in one thread, for the same centres. (The BLAS limit is process-wide
     while it lasts; the runner holds BLAS to ``runtime.blas_threads``, 1, anyway.)
 
-    One k-means++ initialisation on 1024 of the descriptors (scikit-learn's default: the
-    best of three on ``3 * batch_size``). The run joins k-means at a fixed frame
-    (``learn_lag``), and with the default initialisation it was not done by then on ORB
-    runs: tracking waited 0.7-3.3 s for it on five shared sets. On 20 frames of kitti-seq1
-    (300 descriptors each, one quiet thread) the default costs 2.6 s of CPU with ORB's 256
-    unpacked bits and 1.45 s with SIFT, this 0.4 s and 0.3 s, for an inertia 1.1% (ORB)
-    and 1.2% (SIFT) higher."""
+    One k-means++ initialisation on 1024 of the descriptors: the run joins k-means at a
+    fixed frame (``learn_lag``), and it must be done by then or tracking waits. On 20
+    frames of kitti-seq1 (300 descriptors each, one quiet thread) the best of three
+    initialisations on ``3 * batch_size`` descriptors costs 2.6 s of CPU with ORB's 256
+    unpacked bits and 1.45 s with SIFT (tracking waited 0.7-3.3 s at the join on five
+    shared sets with ORB), one on 1024 0.4 s and 0.3 s, for an inertia 1.1% (ORB) and
+    1.2% (SIFT) higher."""
     from sklearn.cluster import MiniBatchKMeans
     from threadpoolctl import threadpool_limits
 
