@@ -607,7 +607,7 @@ class IncrementalRecovery:
             If = block(I, mf, np.concatenate([mf, ps]))  # the features' rows read once
             D = sparse_diagonal_blocks(If[:, : len(mf)])
             Dinv = inverse_spd_blocks(D)
-            Bf = sp.csr_matrix(If[:, len(mf):])  # (3F, len(ps))
+            Bf = If[:, len(mf):]  # (3F, len(ps)), CSR as If is
             Dsp = block_diagonal_csr(Dinv)
             Spp -= (Bf.T @ (Dsp @ Bf)).toarray()
             sv -= Bf.T @ (Dsp @ i[mf])
